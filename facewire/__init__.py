@@ -1,0 +1,1 @@
+"""facewire: the command-line layer over sender and receiver."""

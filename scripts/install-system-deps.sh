@@ -1,0 +1,15 @@
+#!/bin/sh
+# Installs the Debian packages facewire needs: Mesa's EGL for offscreen rendering
+# and Python's venv module. Does nothing when they are already there.
+set -eu
+need=""
+for pkg in libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgles2; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "ok installed" || need="$need $pkg"
+done
+python3 -c "import ensurepip, venv" 2>/dev/null || need="$need python3-venv"
+[ -z "$need" ] && exit 0
+sudo=""
+[ "$(id -u)" -eq 0 ] || sudo="sudo"
+echo "installing Debian packages:$need"
+$sudo apt-get update -qq
+DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends $need
