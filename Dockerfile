@@ -1,0 +1,16 @@
+# facewire in a container: Debian 12, Python 3.11, Mesa's EGL for offscreen rendering.
+FROM python:3.11-slim-bookworm
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgles2 \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY facewire facewire
+COPY models models
+COPY sender sender
+COPY receiver receiver
+COPY protocol protocol
+RUN pip install --no-cache-dir .
+ENV PYOPENGL_PLATFORM=egl
+WORKDIR /out
+ENTRYPOINT ["facewire"]

@@ -1,0 +1,67 @@
+"""The ``facewire`` command."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+logger = logging.getLogger("facewire")
+
+
+def _add_demo(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "demo",
+        help="loopback call on a video (the bundled clip by default)",
+        description="Runs a sender and a receiver as two processes talking ZeroMQ on "
+        "127.0.0.1, and records what the receiver rebuilds.",
+    )
+    p.add_argument("--input", metavar="FILE", help="video to send (default: the bundled clip)")
+    p.add_argument("--output", metavar="FILE.mp4", default="demo-output.mp4",
+                   help="the reconstruction alone, frame i rebuilding input frame i")
+    p.add_argument("--compare", metavar="FILE.mp4", default="demo-compare.mp4",
+                   help="input and reconstruction side by side")
+    p.add_argument("--stats", metavar="FILE.json", help="write the call's statistics as JSON")
+    p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
+    p.add_argument("--fast", action="store_true",
+                   help="read the file as fast as possible instead of at its frame rate")
+
+    def run(args: argparse.Namespace) -> int:
+        from facewire.demo import run_demo
+
+        return run_demo(args)
+
+    p.set_defaults(func=run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="facewire", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-v info, -vv debug)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_demo(sub)
+    from facewire import wirestool
+
+    wirestool.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        print("facewire: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, RuntimeError) as exc:
+        # Bad input ends with one readable line; -vv shows where it came from.
+        logger.debug("failed", exc_info=True)
+        print(f"facewire: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

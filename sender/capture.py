@@ -1,0 +1,111 @@
+"""Video input: a camera index, a video file, or the bundled demo clip."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+DEMO_CLIP = "demo_clip.mp4"
+
+
+class CaptureError(RuntimeError):
+    """The source cannot be opened or read; the message is one readable line."""
+
+
+@dataclass(frozen=True)
+class CapturedFrame:
+    """One input frame.
+
+    index : position in the source, from 0
+    image : (h, w, 3) uint8 BGR
+    capture_us : time the frame was taken, on this process's monotonic clock (µs)
+    """
+
+    index: int
+    image: np.ndarray
+    capture_us: int
+
+
+def demo_clip_path() -> Path:
+    """The bundled clip (rendered from the face model, with ground truth beside it)."""
+    return Path(str(resources.files("sender") / "data" / DEMO_CLIP))
+
+
+def now_us() -> int:
+    """Monotonic clock in microseconds; shared by all processes of one machine."""
+    return time.monotonic_ns() // 1000
+
+
+class VideoSource:
+    """Frames from a camera or a file.
+
+    source : camera index (int or digit string), or a path to any video OpenCV reads.
+    realtime : pace a file at its frame rate (as a camera would deliver it); False reads
+        as fast as possible (for measuring).
+    """
+
+    def __init__(self, source: int | str | Path, realtime: bool = False) -> None:
+        self.is_camera = isinstance(source, int) or (isinstance(source, str) and source.isdigit())
+        if self.is_camera:
+            index = int(source)
+            self._cap = cv2.VideoCapture(index)
+            if not self._cap.isOpened():
+                raise CaptureError(f"cannot open camera {index}: no such device or it is busy")
+            self.name = f"camera {index}"
+        else:
+            path = Path(source)
+            if not path.is_file():
+                raise CaptureError(f"cannot open video {path}: no such file")
+            self._cap = cv2.VideoCapture(str(path))
+            if not self._cap.isOpened():
+                raise CaptureError(f"cannot open video {path}: not a video OpenCV can read")
+            self.name = str(path)
+        ok, first = self._cap.read()
+        if not ok or first is None:
+            self._cap.release()
+            raise CaptureError(f"cannot read a frame from {self.name}")
+        self._first: np.ndarray | None = first
+        self.height, self.width = first.shape[:2]
+        fps = self._cap.get(cv2.CAP_PROP_FPS)
+        self.fps = float(fps) if fps and 1.0 <= fps <= 240.0 else 30.0
+        count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.frame_count = count if count > 0 and not self.is_camera else None
+        self.realtime = realtime and not self.is_camera
+        logger.info("opened %s: %dx%d at %.2f fps", self.name, self.width, self.height, self.fps)
+
+    def frames(self, limit: int | None = None) -> Iterator[CapturedFrame]:
+        """Yield frames in order, at most ``limit``; stops at the end of a file."""
+        start = now_us()
+        index = 0
+        while limit is None or index < limit:
+            if self._first is not None:
+                image, self._first = self._first, None
+            else:
+                ok, image = self._cap.read()
+                if not ok or image is None:
+                    break
+            if self.realtime:
+                due = start + int(index * 1e6 / self.fps)
+                wait = due - now_us()
+                if wait > 0:
+                    time.sleep(wait / 1e6)
+            yield CapturedFrame(index, image, now_us())
+            index += 1
+
+    def close(self) -> None:
+        self._cap.release()
+
+    def __enter__(self) -> VideoSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
