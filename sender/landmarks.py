@@ -1,0 +1,176 @@
+"""Markerless face tracking: MediaPipe's 468-point face landmark model through ``cv2.dnn``.
+
+Each frame the model sees a square, upright (roll-corrected) crop of the face. The crop comes
+from the BlazeFace detector on the first frame and after a loss, and from the previous
+frame's landmarks otherwise. Points are mapped back to image space: OpenCV pixel
+coordinates of the input frame (x right, y down, pixel centres at integers) and z away
+from the camera in the same pixel scale, relative to the face (its origin is arbitrary).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sender.detector import Detection, FaceDetector, model_path, read_tflite
+
+logger = logging.getLogger(__name__)
+
+INPUT_SIZE = 192
+N_LANDMARKS = 468
+# MediaPipe indices that set the crop's roll: the face's right and left outer eye corners.
+RIGHT_EYE_OUTER = 33
+LEFT_EYE_OUTER = 263
+# Crop side relative to the detector box, and to the landmarks' extent (MediaPipe uses 1.5
+# for both; the landmark extent excludes the forehead margin the detector box lacks).
+DETECTION_SCALE = 1.5
+LANDMARK_SCALE = 1.5
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """468 face landmarks of one frame.
+
+    points : (468, 3) float64, image space (pixels; z away from the camera, same scale)
+    presence : float, 0..1, the model's face-presence probability
+    """
+
+    points: np.ndarray
+    presence: float
+
+
+@dataclass(frozen=True)
+class Crop:
+    """A square, rotated crop: crop pixel q maps to image ``centre + scale * R(angle) @ (q - c)``.
+
+    centre : (2,) image pixels; size : side in image pixels; angle : radians, the image
+    direction of the crop's +x axis (the face's right-to-left eye direction).
+    """
+
+    centre: np.ndarray
+    size: float
+    angle: float
+
+    def crop_to_image(self) -> np.ndarray:
+        """(2, 3) affine from OpenCV crop pixels to OpenCV image pixels."""
+        s = self.size / INPUT_SIZE
+        c, si = np.cos(self.angle), np.sin(self.angle)
+        a = s * np.array([[c, -si], [si, c]])
+        mid = (INPUT_SIZE - 1) / 2
+        t = self.centre - a @ np.array([mid, mid])
+        return np.hstack([a, t[:, None]])
+
+
+def eye_angle(right_eye: np.ndarray, left_eye: np.ndarray) -> float:
+    """Roll (radians, image frame) of the vector from the face's right eye to its left eye."""
+    d = np.asarray(left_eye, dtype=np.float64) - np.asarray(right_eye, dtype=np.float64)
+    return float(np.arctan2(d[1], d[0]))
+
+
+def crop_from_detection(det: Detection) -> Crop:
+    """Upright square crop around a detection, enlarged by ``DETECTION_SCALE``."""
+    angle = eye_angle(det.keypoints[0], det.keypoints[1])
+    return Crop(det.centre, DETECTION_SCALE * det.size, angle)
+
+
+def crop_from_points(points: np.ndarray) -> Crop:
+    """Upright square crop around landmarks ((468, 2+) image pixels).
+
+    The extent is measured in the face's own (roll-corrected) frame, so a rolled face gets
+    the same crop size as an upright one.
+    """
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    angle = eye_angle(xy[RIGHT_EYE_OUTER], xy[LEFT_EYE_OUTER])
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.array([[c, -s], [s, c]])
+    local = xy @ rot  # rows are rot.T @ p: image -> face-aligned frame
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    centre = rot @ ((lo + hi) / 2)
+    return Crop(centre, LANDMARK_SCALE * float((hi - lo).max()), angle)
+
+
+def sigmoid(x: float) -> float:
+    return float(1.0 / (1.0 + np.exp(-np.clip(x, -100.0, 100.0))))
+
+
+class LandmarkTracker:
+    """Follows one face from frame to frame and returns its 468 landmarks.
+
+    Input normalisation is RGB scaled to [0, 1]. Checked on the astronaut fixture over 12
+    jittered crops: presence logit >= 23.8 and 0.95 px RMS landmark spread with [0, 1],
+    against >= 22.9 and 1.13 px with [-1, 1] (both "work"; [0, 1] is the model's own).
+    Thread count is whatever the caller set with ``cv2.setNumThreads``.
+    """
+
+    def __init__(
+        self,
+        path: str | Path | None = None,
+        detector: FaceDetector | None = None,
+        min_presence: float = 0.5,
+    ) -> None:
+        self.path = Path(path) if path is not None else model_path("face_landmark.tflite")
+        self.net = read_tflite(self.path)
+        self.detector = detector if detector is not None else FaceDetector()
+        self.min_presence = min_presence
+        self._outputs = ["conv2d_21", "conv2d_31"]
+        self._crop: Crop | None = None
+
+    def reset(self) -> None:
+        """Forget the face: the next frame runs the detector."""
+        self._crop = None
+
+    @property
+    def crop(self) -> Crop | None:
+        """The crop the next frame will use (None: the detector chooses it)."""
+        return self._crop
+
+    def run_crop(self, frame_bgr: np.ndarray, crop: Crop) -> Landmarks:
+        """Landmarks of the face in ``crop`` of ``frame_bgr``, whatever its presence."""
+        m = crop.crop_to_image()
+        patch = cv2.warpAffine(
+            frame_bgr,
+            m,
+            (INPUT_SIZE, INPUT_SIZE),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+        )
+        blob = cv2.dnn.blobFromImage(patch, scalefactor=1 / 255.0, swapRB=True)
+        self.net.setInput(blob)
+        raw, logit = self.net.forward(self._outputs)
+        pts = raw.reshape(N_LANDMARKS, 3).astype(np.float64)
+        # The model's coordinates are continuous (pixel i spans [i, i+1)); OpenCV's pixel
+        # centres are at integers.
+        q = pts[:, :2] - 0.5
+        out = np.empty_like(pts)
+        out[:, :2] = q @ m[:, :2].T + m[:, 2]
+        # MediaPipe z is more negative closer to the camera, which is our "away from the
+        # camera" sign already; only the crop's scale applies (roll is about the z axis).
+        out[:, 2] = pts[:, 2] * (crop.size / INPUT_SIZE)
+        return Landmarks(out, sigmoid(float(logit.ravel()[0])))
+
+    def track(self, frame_bgr: np.ndarray) -> Landmarks | None:
+        """Landmarks of the face in ``frame_bgr`` ((h, w, 3) uint8 BGR), or None if none.
+
+        After a None the next call runs the detector again.
+        """
+        if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3 or frame_bgr.dtype != np.uint8:
+            raise ValueError(
+                f"expected (h, w, 3) uint8 BGR frame, got {frame_bgr.shape} {frame_bgr.dtype}"
+            )
+        crop = self._crop
+        if crop is None:
+            dets = self.detector.detect(frame_bgr)
+            if not dets:
+                return None
+            crop = crop_from_detection(dets[0])
+        lm = self.run_crop(frame_bgr, crop)
+        if lm.presence < self.min_presence:
+            logger.debug("face lost: presence %.3f < %.3f", lm.presence, self.min_presence)
+            self._crop = None
+            return None
+        self._crop = crop_from_points(lm.points)
+        return lm
