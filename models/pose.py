@@ -107,7 +107,8 @@ class Pose:
     def __repr__(self) -> str:
         rotvec = np.degrees(Rotation.from_matrix(self.rotation).as_rotvec())
         return (
-            f"Pose(rotvec_deg={np.round(rotvec, 2)}, scale={self.scale:.4g}, t={self.translation})"
+            f"Pose(rotvec_deg={np.round(rotvec, 2)}, scale={self.scale:.4g}, "
+            f"t={np.round(self.translation, 3)})"
         )
 
 
