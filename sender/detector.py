@@ -18,6 +18,8 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 INPUT_SIZE = 128
+# Graph outputs: box + keypoint regressions (1, 896, 16), score logits (1, 896, 1).
+OUTPUT_LAYERS = ["regressors", "classificators"]
 # SSD anchor layout of the short-range model: one feature map per stride, and layers
 # sharing a stride are merged, so stride 8 has 2 anchors per cell and stride 16 has 6.
 _ANCHOR_LAYOUT = ((8, 2), (16, 6))
@@ -152,7 +154,6 @@ class FaceDetector:
         self.min_score = min_score
         self.iou_threshold = iou_threshold
         self.anchors = ssd_anchors()
-        self._outputs = ["regressors", "classificators"]
 
     def detect(self, frame_bgr: np.ndarray) -> list[Detection]:
         """Faces in ``frame_bgr`` ((h, w, 3) uint8 BGR, any size), best first."""
@@ -172,7 +173,7 @@ class FaceDetector:
             small, scalefactor=1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True
         )
         self.net.setInput(blob)
-        regressors, logits = self.net.forward(self._outputs)
+        regressors, logits = self.net.forward(OUTPUT_LAYERS)
         boxes, kps, scores = decode(regressors[0], logits.reshape(-1), self.anchors)
         keep = scores >= self.min_score
         if not keep.any():

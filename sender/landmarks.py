@@ -21,6 +21,8 @@ from sender.detector import Detection, FaceDetector, model_path, read_tflite
 logger = logging.getLogger(__name__)
 
 INPUT_SIZE = 192
+# Graph outputs: 468 x (x, y, z) in crop pixels (1, 1404, 1, 1), face-presence logit (1, 1, 1, 1).
+OUTPUT_LAYERS = ["conv2d_21", "conv2d_31"]
 N_LANDMARKS = 468
 # MediaPipe indices that set the crop's roll: the face's right and left outer eye corners.
 RIGHT_EYE_OUTER = 33
@@ -116,7 +118,6 @@ class LandmarkTracker:
         self.net = read_tflite(self.path)
         self.detector = detector if detector is not None else FaceDetector()
         self.min_presence = min_presence
-        self._outputs = ["conv2d_21", "conv2d_31"]
         self._crop: Crop | None = None
 
     def reset(self) -> None:
@@ -140,7 +141,7 @@ class LandmarkTracker:
         )
         blob = cv2.dnn.blobFromImage(patch, scalefactor=1 / 255.0, swapRB=True)
         self.net.setInput(blob)
-        raw, logit = self.net.forward(self._outputs)
+        raw, logit = self.net.forward(OUTPUT_LAYERS)
         pts = raw.reshape(N_LANDMARKS, 3).astype(np.float64)
         # The model's coordinates are continuous (pixel i spans [i, i+1)); OpenCV's pixel
         # centres are at integers.
