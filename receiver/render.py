@@ -1,0 +1,301 @@
+"""Offscreen rendering of the textured face mesh, pixel-aligned with the input frame.
+
+This is the only module that imports pyrender / OpenGL. It defaults to EGL so it runs
+with no display (Mesa llvmpipe on CPU-only machines).
+
+Frames: the renderer takes vertices in *image space* (pixels, x right, y down, z away from
+the camera, same scale as x) and draws them with an orthographic camera so that a vertex
+at image (x, y) lands exactly on pixel (column x, row y), pixel centres at integer
+coordinates (the OpenCV convention).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+from types import TracebackType
+
+import numpy as np
+
+# pyrender picks its GL platform at import time; EGL needs no display.
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+# pyrender 0.1.45 still uses np.infty, which numpy 2 removed.
+if not hasattr(np, "infty"):
+    setattr(np, "infty", np.inf)  # noqa: B010
+
+import pyrender  # noqa: E402
+from OpenGL import GL  # noqa: E402
+
+logger = logging.getLogger(__name__)
+
+_FLOAT_SIZE = 4
+# Camera distance in front of the nearest vertex, in pixels (image-space z units).
+_NEAR_MARGIN = 16.0
+
+
+def _check_uint8_image(name: str, img: np.ndarray, shape: tuple[int, ...] | None) -> np.ndarray:
+    img = np.asarray(img)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"expected {name} (h, w, 3) uint8, got {img.shape} {img.dtype}")
+    if shape is not None and img.shape != shape:
+        raise ValueError(f"expected {name} of shape {shape}, got {img.shape}")
+    return img
+
+
+def _check_square_texture(texture_bgr: np.ndarray) -> np.ndarray:
+    tex = _check_uint8_image("texture_bgr", texture_bgr, None)
+    if tex.shape[0] != tex.shape[1]:
+        raise ValueError(f"expected a square texture (T, T, 3), got {tex.shape}")
+    return tex
+
+
+class FaceRenderer:
+    """Renders a textured triangle mesh given in image space, over a background.
+
+    width, height : output size in pixels
+    triangles : (m, 3) int, vertex indices
+    uvs : (n, 2) float, texture coordinates in [0, 1]; u to the right and v = 0 at the
+        TOP row of the texture image (image convention, as the canonical mesh's UVs are in
+        practice)
+    texture_bgr : (T, T, 3) uint8, BGR texture image
+    background_bgr : (height, width, 3) uint8 or None (black)
+
+    Shading is unlit (the texture comes from video and already holds the lighting), the
+    surface is double-sided and the texture is sampled bilinearly without mipmaps. The edge
+    of the face is antialiased (4x multisampling) and blended with the background.
+
+    Vertex positions are uploaded into the existing GL vertex buffer each frame
+    (``glBufferSubData``) rather than rebuilding the pyrender mesh; see
+    benchmarks/bench_render.py for the comparison.
+
+    Each renderer owns its own EGL context, so several can live in one process; use one
+    renderer from one thread.
+    """
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        triangles: np.ndarray,
+        uvs: np.ndarray,
+        texture_bgr: np.ndarray,
+        background_bgr: np.ndarray | None = None,
+    ) -> None:
+        if int(width) <= 0 or int(height) <= 0:
+            raise ValueError(f"expected a positive size, got {width}x{height}")
+        self.width = int(width)
+        self.height = int(height)
+        tris = np.asarray(triangles)
+        if tris.ndim != 2 or tris.shape[1] != 3 or not np.issubdtype(tris.dtype, np.integer):
+            raise ValueError(f"expected (m, 3) int triangles, got {tris.shape} {tris.dtype}")
+        uv = np.asarray(uvs, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f"expected (n, 2) uvs, got {uv.shape}")
+        if tris.size and (tris.min() < 0 or tris.max() >= len(uv)):
+            raise ValueError(f"triangle index out of range 0..{len(uv) - 1}")
+        self.n_vertices = len(uv)
+        self._triangles = tris.astype(np.int64)
+        # pyrender flips the texture image on upload (GL t = 0 is the image's bottom row),
+        # so image-convention v becomes t = 1 - v.
+        self._texcoords = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
+        self._interleaved = np.zeros((self.n_vertices, 5), dtype=np.float32)
+        self._interleaved[:, 3:] = self._texcoords
+
+        self._background: np.ndarray | None = None
+        self.set_background(background_bgr)
+
+        tex = _check_square_texture(texture_bgr)
+        self._texture = self._make_texture(tex)
+        self._material = pyrender.MetallicRoughnessMaterial(
+            baseColorFactor=[1.0, 1.0, 1.0, 1.0],
+            baseColorTexture=self._texture,
+            doubleSided=True,
+        )
+        self._scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[1.0, 1.0, 1.0])
+        self._primitive = self._make_primitive(np.zeros((self.n_vertices, 3), dtype=np.float32))
+        self._mesh_node = self._scene.add(pyrender.Mesh([self._primitive]))
+        # Orthographic: one world unit = one pixel; xmag/ymag are half the view size.
+        self._camera = pyrender.OrthographicCamera(
+            xmag=self.width / 2.0, ymag=self.height / 2.0, znear=1.0, zfar=100.0
+        )
+        self._camera_node = self._scene.add(self._camera, pose=np.eye(4))
+        self._renderer: pyrender.OffscreenRenderer | None = pyrender.OffscreenRenderer(
+            self.width, self.height
+        )
+        self._uploaded = False  # GL buffers exist only after the first render
+        self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA
+        logger.debug(
+            "FaceRenderer %dx%d, %d vertices, %d triangles, texture %s",
+            self.width,
+            self.height,
+            self.n_vertices,
+            len(self._triangles),
+            tex.shape,
+        )
+
+    # -- scene pieces -------------------------------------------------------------------
+
+    @staticmethod
+    def _make_texture(texture_bgr: np.ndarray) -> pyrender.Texture:
+        # Unlit flat shading passes texels through unchanged, so the BGR bytes can go in
+        # as they are and come back out as BGR.
+        sampler = pyrender.Sampler(
+            magFilter=GL.GL_LINEAR,
+            minFilter=GL.GL_LINEAR,
+            wrapS=GL.GL_CLAMP_TO_EDGE,
+            wrapT=GL.GL_CLAMP_TO_EDGE,
+        )
+        return pyrender.Texture(
+            source=np.ascontiguousarray(texture_bgr), source_channels="RGB", sampler=sampler
+        )
+
+    def _make_primitive(self, gl_positions: np.ndarray) -> pyrender.Primitive:
+        return pyrender.Primitive(
+            positions=gl_positions,
+            texcoord_0=self._texcoords,
+            indices=self._triangles,
+            material=self._material,
+            mode=pyrender.constants.GLTF.TRIANGLES,
+        )
+
+    # -- public API ---------------------------------------------------------------------
+
+    def set_background(self, background_bgr: np.ndarray | None) -> None:
+        """Background to composite over: (height, width, 3) uint8 BGR, or None for black."""
+        if background_bgr is None:
+            self._background = None
+            return
+        bg = _check_uint8_image("background_bgr", background_bgr, (self.height, self.width, 3))
+        self._background = bg.copy()
+
+    def set_texture(self, texture_bgr: np.ndarray) -> None:
+        """Replace the face texture: (T, T, 3) uint8 BGR, v = 0 at the top row.
+
+        A texture of the same size is re-uploaded in place (cheap enough per frame for
+        live eye patches); a new size replaces the GL texture.
+        """
+        tex = _check_square_texture(texture_bgr)
+        same_size = tex.shape == self._texture.source.shape
+        if self._uploaded and same_size and self._texture._texid is not None:
+            self._texture.source = np.ascontiguousarray(tex)
+            self._make_current()
+            GL.glBindTexture(GL.GL_TEXTURE_2D, self._texture._texid)
+            GL.glTexSubImage2D(
+                GL.GL_TEXTURE_2D,
+                0,
+                0,
+                0,
+                tex.shape[1],
+                tex.shape[0],
+                GL.GL_RGB,
+                GL.GL_UNSIGNED_BYTE,
+                np.ascontiguousarray(tex[::-1]),
+            )
+            GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+            return
+        # pyrender notices the new texture object at the next render, uploads it and
+        # frees the old one.
+        self._texture = self._make_texture(tex)
+        self._material.baseColorTexture = self._texture
+
+    def render(self, image_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Draw the mesh at ``image_vertices`` and composite it over the background.
+
+        image_vertices : (n, 3) float, image space (pixels, x right, y down, z away from
+            the camera)
+        returns frame_bgr (height, width, 3) uint8 and mask (height, width) bool, True where
+            the face covers the pixel centre (more than half of the multisample coverage).
+        """
+        if self._renderer is None:
+            raise RuntimeError("FaceRenderer is closed")
+        v = np.asarray(image_vertices, dtype=np.float64)
+        if v.shape != (self.n_vertices, 3):
+            raise ValueError(f"expected ({self.n_vertices}, 3) image_vertices, got {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("image_vertices contain NaN or infinite values")
+
+        # Image (x, y, z) -> GL world (x, -y, -z): a rotation by 180 degrees about x.
+        gl = np.empty((self.n_vertices, 3), dtype=np.float32)
+        gl[:, 0] = v[:, 0]
+        gl[:, 1] = -v[:, 1]
+        gl[:, 2] = -v[:, 2]
+        self._place_camera(float(v[:, 2].min()), float(v[:, 2].max()))
+        self._set_positions(gl)
+
+        rgba, _depth = self._renderer.render(self._scene, flags=self._flags)
+        self._uploaded = True
+        return self._composite(rgba)
+
+    def close(self) -> None:
+        """Free the GL context; the renderer cannot be used afterwards."""
+        if self._renderer is not None:
+            self._renderer.delete()
+            self._renderer = None
+
+    def __enter__(self) -> FaceRenderer:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- internals ----------------------------------------------------------------------
+
+    def _make_current(self) -> None:
+        assert self._renderer is not None
+        self._renderer._platform.make_current()
+
+    def _place_camera(self, z_min: float, z_max: float) -> None:
+        # GL window x = X - cx + W/2 must equal x + 0.5 (pixel centre), so cx = W/2 - 0.5;
+        # likewise for the flipped rows, cy = -(H/2 - 0.5). The camera sits _NEAR_MARGIN in
+        # front of the nearest vertex and the far plane just behind the farthest one, so the
+        # depth range always fits the data whatever the pose's translation in z.
+        pose = np.eye(4)
+        pose[0, 3] = self.width / 2.0 - 0.5
+        pose[1, 3] = -(self.height / 2.0 - 0.5)
+        pose[2, 3] = -z_min + _NEAR_MARGIN
+        self._scene.set_pose(self._camera_node, pose)
+        self._camera.znear = _NEAR_MARGIN / 2.0
+        self._camera.zfar = (z_max - z_min) + 2.0 * _NEAR_MARGIN
+
+    def _set_positions(self, gl_positions: np.ndarray) -> None:
+        prim = self._primitive
+        if not self._uploaded or prim._vaid is None:
+            prim.positions = gl_positions
+            return
+        # Same layout pyrender created: interleaved float32 [x y z u v] per vertex, in the
+        # first buffer of the primitive (no normals, tangents or colours).
+        prim._positions = gl_positions  # keeps pyrender's CPU copy consistent, no bounds
+        prim._bounds = None
+        self._interleaved[:, :3] = gl_positions
+        self._make_current()
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, prim._buffers[0])
+        GL.glBufferSubData(
+            GL.GL_ARRAY_BUFFER,
+            0,
+            self._interleaved.nbytes,
+            ctypes.c_void_p(self._interleaved.ctypes.data),
+        )
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+
+    def _composite(self, rgba: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Cleared to transparent black, so after the multisample resolve the colour is
+        # premultiplied by coverage: out = colour + background * (1 - alpha).
+        alpha = rgba[:, :, 3]
+        mask = alpha > 127
+        color = rgba[:, :, :3]
+        if self._background is None:
+            return np.ascontiguousarray(color), mask
+        out = self._background.copy()
+        edge = (alpha > 0) & (alpha < 255)
+        out[alpha == 255] = color[alpha == 255]
+        if np.any(edge):
+            a = alpha[edge].astype(np.float32)[:, None] / 255.0
+            blended = color[edge].astype(np.float32) + self._background[edge] * (1.0 - a)
+            out[edge] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
+        return out, mask
