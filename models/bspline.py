@@ -80,8 +80,9 @@ def chord_length_parameters(points: np.ndarray) -> np.ndarray:
 def fit_control_points(points: np.ndarray, n_ctrl: int) -> np.ndarray:
     """(n_ctrl, d) least-squares control points of a curve through the ordered chain points (k, d).
 
-    Chord-length parameters; the end points are interpolated exactly by the clamped basis
-    only up to least squares, so a chain of exactly n_ctrl points is interpolated.
+    Parameters by chord length. A chain of exactly n_ctrl points is interpolated; a longer
+    one is approximated in the least-squares sense. Raises ValueError when the chain has
+    fewer than n_ctrl points.
     """
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2:

@@ -335,7 +335,7 @@ class WireDeformer:
         return self.base_vertices + self.displacement(params)
 
     @cached_property
-    def _pinv(self) -> np.ndarray:
+    def _solver(self) -> tuple[np.ndarray, int, float]:
         # Eq. 13: (A^T A)^+ A^T = A^+; the SVD of A itself avoids squaring its condition
         # number. Rows of vertices no wire reaches are zero, so they are left out.
         rows = (3 * self.reached[:, None] + np.arange(3)).ravel()
@@ -349,20 +349,30 @@ class WireDeformer:
                 rank,
                 self.n_params,
             )
-        self.rank = rank
-        self.condition = float(sv[0] / sv[keep][-1]) if rank else float("inf")
-        return np.asarray((vt[keep].T / sv[keep]) @ u[:, keep].T)
+        condition = float(sv[0] / sv[keep][-1]) if rank else float("inf")
+        pinv = np.asarray((vt[keep].T / sv[keep]) @ u[:, keep].T)
+        return pinv, rank, condition
+
+    @property
+    def rank(self) -> int:
+        """Numerical rank of A (n_params when every parameter is determined by a fit)."""
+        return self._solver[1]
+
+    @property
+    def condition(self) -> float:
+        """Condition number of A over the kept singular values."""
+        return self._solver[2]
 
     def prepare_fit(self) -> None:
         """Compute the pseudo-inverse now (otherwise on the first fit)."""
-        _ = self._pinv
+        _ = self._solver
 
     def fit_displacement(self, displacement: np.ndarray) -> np.ndarray:
         """(P,) least-squares params for vertex displacements (n, 3), cm (Eq. 12-13)."""
         d = _as_vertices(displacement, "displacements")
         if len(d) != self.n_vertices:
             raise ValueError(f"expected ({self.n_vertices}, 3) displacements, got {d.shape}")
-        x = self._pinv @ d[self.reached].ravel()
+        x = self._solver[0] @ d[self.reached].ravel()
         x[self.s_slice] += 1.0
         return np.asarray(x)
 

@@ -252,3 +252,18 @@ def test_bad_input_raises_with_the_bad_value(canonical):
         w.deform(np.zeros(31))
     with pytest.raises(ValueError, match=r"expected \(468, 3\) target vertices, got \(10, 3\)"):
         w.fit(np.zeros((10, 3)))
+
+
+def test_rank_deficient_system_returns_the_least_change_solution(caplog):
+    # Every vertex lies on the curve, so p - p_R = 0 and the scale s has no effect.
+    verts = np.linspace([0.0, 0.0, 0.0], [4.0, 1.0, 0.0], 9)
+    w = WireDeformer(verts, [WireCurveSpec("line", tuple(range(9)), 4, 1.0)], 2.0)
+    p = w.rest_params()
+    p[0] = 1.7
+    p[w.q_slices[0]] = np.random.default_rng(4).normal(scale=0.2, size=12)
+    with caplog.at_level("WARNING", logger="models.wires"):
+        got = w.fit(w.deform(p))
+    assert w.rank == w.n_params - 1
+    assert "rank deficient (12 of 13)" in caplog.text
+    assert got[0] == pytest.approx(1.0)  # the undetermined scale stays at rest
+    np.testing.assert_allclose(got[1:], p[1:], atol=1e-10)
