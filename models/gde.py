@@ -36,12 +36,16 @@ Metric = Literal["edges", "euclidean"]
 
 
 class GdeSpecLike(Protocol):
-    """Anything naming a GDE like ``models.rig.GdeSpec``."""
+    """Anything naming a GDE like ``models.rig.GdeSpec`` (read-only attributes)."""
 
-    name: str
-    control_vertex: int
-    size: float
-    metric: str
+    @property
+    def name(self) -> str: ...
+    @property
+    def control_vertex(self) -> int: ...
+    @property
+    def size(self) -> float: ...
+    @property
+    def metric(self) -> str: ...
 
 
 @dataclass(frozen=True)

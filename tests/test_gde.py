@@ -188,3 +188,12 @@ def test_from_rig_uses_plain_attributes(mesh):
 
     gs = GdeSet.from_rig(mesh, Rig())
     assert not set(gs.elements[0].region) & set(UPPER_LIP)
+
+
+def test_bundled_rig(mesh):
+    from models.rig import load_rig
+
+    gs = GdeSet.from_rig(mesh, load_rig())
+    assert len(gs) > 0 and all(len(g.anchors) <= 20 for g in gs.elements)
+    d = np.zeros((len(gs), 3))
+    assert np.array_equal(gs.deform(mesh.vertices, d), mesh.vertices)

@@ -188,3 +188,10 @@ def test_from_rig_accepts_rig_or_lips(mesh):
     b = MouthRig.from_rig(mesh, Lips(), falloff=0.8)
     d = np.full((4, 3), 0.1)
     assert np.array_equal(a.deform(mesh.vertices, d), b.deform(mesh.vertices, d))
+
+
+def test_bundled_rig(mesh):
+    from models.rig import load_rig
+
+    rig = MouthRig.from_rig(mesh, load_rig())
+    assert np.array_equal(rig.deform(mesh.vertices, np.zeros((4, 3))), mesh.vertices)
