@@ -224,7 +224,8 @@ def _set(obj: object, name: str, value: object) -> None:
 class Snapshot(_Packet):
     """The session: person-specific mesh, texture, background, camera and quantisation tables.
 
-    vertices : (n, 3) float32, cm, model space, vertex i = landmark i of the canonical mesh
+    vertices : (n, 3) float, cm, model space (stored and sent as float32); vertex i is
+        landmark i of the canonical mesh
     texture, background : JPEG or PNG bytes (may be empty)
     quant : parameter group name -> quantisation step (see protocol.constants.QUANT_*)
     wire_layout : (curve name, number of control points) in the order of Frame.params
@@ -239,7 +240,7 @@ class Snapshot(_Packet):
     width: int
     height: int
     fps: float
-    vertices: NDArray[np.float32] = field(repr=False)
+    vertices: NDArray[np.floating[Any]] = field(repr=False)
     texture: bytes = field(repr=False)
     background: bytes = field(repr=False)
     quant: Mapping[str, float]
