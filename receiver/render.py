@@ -14,6 +14,7 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import threading
 from types import TracebackType
 
 import numpy as np
@@ -30,6 +31,12 @@ from OpenGL import GL  # noqa: E402
 logger = logging.getLogger(__name__)
 
 _FLOAT_SIZE = 4
+# Live renderers in this process. pyrender's EGL platform calls eglTerminate on the shared
+# default display when one renderer is deleted, which breaks every other renderer; we only
+# let the last one terminate it.
+_live_lock = threading.Lock()
+_live_count = 0
+
 # Camera distance in front of the nearest vertex, in pixels (image-space z units).
 _NEAR_MARGIN = 16.0
 
@@ -123,6 +130,9 @@ class FaceRenderer:
         self._renderer: pyrender.OffscreenRenderer | None = pyrender.OffscreenRenderer(
             self.width, self.height
         )
+        global _live_count
+        with _live_lock:
+            _live_count += 1
         self._uploaded = False  # GL buffers exist only after the first render
         self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA
         logger.debug(
@@ -229,9 +239,26 @@ class FaceRenderer:
 
     def close(self) -> None:
         """Free the GL context; the renderer cannot be used afterwards."""
-        if self._renderer is not None:
-            self._renderer.delete()
-            self._renderer = None
+        if self._renderer is None:
+            return
+        global _live_count
+        renderer, self._renderer = self._renderer, None
+        with _live_lock:
+            _live_count -= 1
+            last = _live_count == 0
+            platform = renderer._platform
+            egl_display = getattr(platform, "_egl_display", None)
+            if last or egl_display is None:
+                renderer.delete()
+                return
+            # Free this context's GL objects and the context, but keep the display.
+            from OpenGL.EGL import eglDestroyContext
+
+            platform.make_current()
+            renderer._renderer.delete()
+            eglDestroyContext(egl_display, platform._egl_context)
+            platform._egl_context = None
+            platform._egl_display = None
 
     def __enter__(self) -> FaceRenderer:
         return self

@@ -68,7 +68,8 @@ def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
     # Push: mask-weighted downsampling until one texel is left.
     levels: list[tuple[np.ndarray, np.ndarray]] = []
-    acc, wt = data * w[:, :, None], w
+    acc: np.ndarray = data * w[:, :, None]
+    wt: np.ndarray = w
     while True:
         levels.append((acc, wt))
         h, wd = wt.shape
@@ -258,9 +259,9 @@ class UvRasteriser:
         ok = facing > min_facing
         ok &= (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
         ok[ok] = self._visible(image_vertices, pts[ok], w, h)
-        valid = np.zeros(s * s, dtype=bool)
-        valid[self._flat_index] = ok
-        valid = valid.reshape(s, s)
+        valid_flat = np.zeros(s * s, dtype=bool)
+        valid_flat[self._flat_index] = ok
+        valid = valid_flat.reshape(s, s)
         return fill_invalid(texture, valid), valid
 
     def _visible(self, image_vertices: np.ndarray, pts: np.ndarray, w: int, h: int) -> np.ndarray:
@@ -287,7 +288,7 @@ def face_hull_mask(
     used = np.unique(t)
     pts = np.round(v[used, :2]).astype(np.int32)
     hull = cv2.convexHull(pts)
-    mask = np.zeros(shape, dtype=np.uint8)
+    mask: np.ndarray = np.zeros(shape, dtype=np.uint8)
     cv2.fillConvexPoly(mask, hull, 255)
     if dilate > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1))

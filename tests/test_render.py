@@ -1,0 +1,262 @@
+"""Offscreen face renderer: pixel alignment, texture orientation, compositing (real EGL)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from models.mesh import load_canonical
+from receiver.render import FaceRenderer
+
+W, H = 640, 480
+T = 512
+OUT = Path(os.environ.get("FACEWIRE_TEST_OUT", "/tmp/facewire-tests"))
+
+
+def smooth_texture(size: int = T) -> np.ndarray:
+    """BGR texture whose colour is a smooth, unique-ish function of (u, v).
+
+    R grows with u (left to right), G with v (top to bottom), B is a slow wave: a flipped
+    or mirrored UV convention shows up as wrong colours at known vertices.
+    """
+    u, v = np.meshgrid((np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size)
+    tex = np.empty((size, size, 3), np.uint8)
+    tex[..., 0] = np.round(128 + 90 * np.sin(2 * np.pi * (u + v))).astype(np.uint8)
+    tex[..., 1] = np.round(20 + 215 * v).astype(np.uint8)
+    tex[..., 2] = np.round(20 + 215 * u).astype(np.uint8)
+    return tex
+
+
+def gradient_background() -> np.ndarray:
+    yy, xx = np.mgrid[0:H, 0:W]
+    return np.dstack([60 + xx / 8, 70 + yy / 6, 140 + 0 * xx]).astype(np.uint8)
+
+
+def frontal(mesh_vertices: np.ndarray, scale: float = 14.0, t=(320.0, 250.0, 500.0)) -> np.ndarray:
+    """Image-space vertices of a frontal upright face: scale * diag(1, -1, -1) @ v + t."""
+    return mesh_vertices * np.array([scale, -scale, -scale]) + np.asarray(t)
+
+
+def sample_texture(tex: np.ndarray, uvs: np.ndarray) -> np.ndarray:
+    """(n, 3) bilinear texture colours at uvs (v = 0 top), texel centres at (i + 0.5) / T."""
+    s = tex.shape[0]
+    mx = (uvs[:, 0] * s - 0.5).astype(np.float32)[None]
+    my = (uvs[:, 1] * s - 0.5).astype(np.float32)[None]
+    return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+
+
+def save(name: str, img: np.ndarray) -> None:
+    OUT.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(OUT / name), img)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return load_canonical()
+
+
+@pytest.fixture(scope="module")
+def renderer(mesh):
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as r:
+        yield r
+
+
+def interior_vertices(mesh) -> np.ndarray:
+    """Vertices not on the mesh boundary, whose neighbourhood faces the viewer."""
+    t = mesh.triangles
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    boundary = np.zeros(mesh.n_vertices, bool)
+    boundary[edges[counts == 1].ravel()] = True
+    n = mesh.vertex_normals()
+    return np.flatnonzero(~boundary & (n[:, 2] > 0.6))
+
+
+def test_vertex_colours_match_texture(renderer, mesh):
+    renderer.set_background(None)
+    img = frontal(mesh.vertices)
+    frame, mask = renderer.render(img)
+    save("render_frontal.png", frame)
+    idx = interior_vertices(mesh)
+    assert len(idx) > 250
+    cols = np.rint(img[idx, 0]).astype(int)
+    rows = np.rint(img[idx, 1]).astype(int)
+    assert mask[rows, cols].all()
+    got = frame[rows, cols].astype(int)
+    want = sample_texture(smooth_texture(), mesh.uvs[idx]).astype(int)
+    err = np.abs(got - want).max(axis=1)
+    # The pixel centre is up to half a pixel from the vertex, and a few vertices hide
+    # behind the nose; the texture changes < 1 level per pixel of render.
+    assert np.median(err) <= 2, np.median(err)
+    assert np.percentile(err, 95) <= 8, np.percentile(err, 95)
+    # Orientation spelled out: forehead (10) is top of the texture (low G), chin (152)
+    # bottom (high G); the face's right eye corner (33) is on image left (low R).
+    g_forehead = frame[int(round(img[151, 1])), int(round(img[151, 0])), 1]
+    g_chin = frame[int(round(img[199, 1])), int(round(img[199, 0])), 1]
+    assert g_forehead < 80 < 160 < g_chin
+    r_right_eye = frame[int(round(img[33, 1])), int(round(img[33, 0])), 2]
+    r_left_eye = frame[int(round(img[263, 1])), int(round(img[263, 0])), 2]
+    assert r_right_eye < 100 < 160 < r_left_eye
+
+
+def test_square_lands_on_exact_pixels():
+    # Two triangles covering pixel centres columns 100..200 and rows 100..150 exactly.
+    verts = np.array(
+        [[99.5, 99.5, 0.0], [200.5, 99.5, 0.0], [200.5, 150.5, 0.0], [99.5, 150.5, 0.0]]
+    )
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    uvs = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    tex = np.full((4, 4, 3), 200, np.uint8)
+    with FaceRenderer(W, H, tris, uvs, tex) as r:
+        frame, mask = r.render(verts)
+    want = np.zeros((H, W), bool)
+    want[100:151, 100:201] = True
+    assert np.array_equal(mask, want)
+    assert (frame[want] == 200).all()
+    assert (frame[~want] < 200).all()
+
+
+def test_texture_rows_top_to_bottom():
+    # A texture whose top half is red and bottom half blue, on a quad with v = 0 at the top.
+    verts = np.array([[100, 100, 0], [300, 100, 0], [300, 300, 0], [100, 300, 0]], float)
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    uvs = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    tex = np.zeros((64, 64, 3), np.uint8)
+    tex[:32, :, 2] = 255  # top: red (BGR)
+    tex[32:, :, 0] = 255  # bottom: blue
+    tex[:, :8, 1] = 255  # left strip: green added
+    with FaceRenderer(W, H, tris, uvs, tex) as r:
+        frame, _ = r.render(verts)
+    assert tuple(frame[150, 200]) == (0, 0, 255)
+    assert tuple(frame[250, 200]) == (255, 0, 0)
+    assert frame[150, 105, 1] == 255 and frame[150, 295, 1] == 0
+
+
+def test_mask_covers_projected_hull(renderer, mesh):
+    img = frontal(mesh.vertices)
+    _, mask = renderer.render(img)
+    hull = np.zeros((H, W), np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.rint(img[:, :2]).astype(np.int32)), 1)
+    grown = cv2.dilate(hull, np.ones((3, 3), np.uint8)).astype(bool)
+    assert not (mask & ~grown).any()
+    # The face outline is nearly convex, and the mesh has no holes (eyes, mouth closed).
+    assert mask.sum() > 0.95 * hull.sum()
+
+
+def test_translation_shifts_render(renderer, mesh):
+    img = frontal(mesh.vertices)
+    dx, dy = 23, -11
+    a, ma = renderer.render(img)
+    b, mb = renderer.render(img + [dx, dy, 0])
+    shifted = np.roll(a, (dy, dx), axis=(0, 1))
+    shifted_mask = np.roll(ma, (dy, dx), axis=(0, 1))
+    assert np.array_equal(mb, shifted_mask)
+    assert np.abs(b.astype(int) - shifted).max() <= 1
+    # Depth translation does not change an orthographic render.
+    c, mc = renderer.render(img + [0, 0, 1e4])
+    assert np.array_equal(mc, ma) and np.abs(c.astype(int) - a).max() <= 1
+
+
+def test_composite_over_background(renderer, mesh):
+    bg = gradient_background()
+    renderer.set_background(bg)
+    try:
+        frame, mask = renderer.render(frontal(mesh.vertices))
+    finally:
+        renderer.set_background(None)
+    save("render_over_background.png", frame)
+    # Where no sample is covered the background shows exactly.
+    far = ~cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.array_equal(frame[far], bg[far])
+    assert np.abs(frame[mask].astype(int) - bg[mask]).mean() > 30
+
+
+def test_set_texture_same_and_new_size(renderer, mesh):
+    img = frontal(mesh.vertices)
+    try:
+        renderer.set_texture(np.full((T, T, 3), (10, 200, 30), np.uint8))
+        frame, mask = renderer.render(img)
+        # Edge pixels are blended with the (black) background by their coverage.
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        assert np.abs(frame[inner].astype(int) - (10, 200, 30)).max() <= 1
+        renderer.set_texture(np.full((64, 64, 3), (250, 5, 90), np.uint8))
+        frame, mask = renderer.render(img)
+        assert np.abs(frame[inner].astype(int) - (250, 5, 90)).max() <= 1
+    finally:
+        renderer.set_texture(smooth_texture())
+    frame, _ = renderer.render(img)
+    r = int(round(img[1, 1])), int(round(img[1, 0]))
+    assert abs(int(frame[r][1]) - int(sample_texture(smooth_texture(), mesh.uvs[[1]])[0, 1])) <= 3
+
+
+def test_two_renderers_in_one_process(mesh):
+    img = frontal(mesh.vertices)
+    tex_b = np.full((T, T, 3), 77, np.uint8)
+    with (
+        FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as a,
+        FaceRenderer(W, H, mesh.triangles, mesh.uvs, tex_b) as b,
+    ):
+        fa1, ma1 = a.render(img)
+        fb, mb = b.render(img + [50, 0, 0])
+        fa2, ma2 = a.render(img)
+        fb2, _ = b.render(img + [50, 0, 0])
+    assert np.array_equal(fa1, fa2) and np.array_equal(ma1, ma2)
+    assert np.array_equal(fb, fb2)
+    inner = cv2.erode(mb.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert (fb[inner] == 77).all()
+    assert np.array_equal(np.roll(ma1, 50, axis=1), mb)
+
+
+_CHILD = """
+import json, sys
+import numpy as np
+from models.mesh import load_canonical
+from receiver.render import FaceRenderer
+m = load_canonical()
+img = m.vertices * np.array([14.0, -14.0, -14.0]) + [320.0, 250.0, 500.0]
+with FaceRenderer(640, 480, m.triangles, m.uvs, np.full((64, 64, 3), 90, np.uint8)) as r:
+    frame, mask = r.render(img)
+print(json.dumps({"mask": int(mask.sum()), "value": int(np.median(frame[mask]))}))
+"""
+
+
+def test_renders_in_subprocess(renderer, mesh):
+    # The demo runs the receiver in a child process; no display is available there either.
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    out = subprocess.run(
+        [sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    _, mask = renderer.render(frontal(mesh.vertices))
+    assert got == {"mask": int(mask.sum()), "value": 90}
+
+
+def test_rejects_bad_inputs(renderer, mesh):
+    with pytest.raises(ValueError, match=r"\(468, 3\) image_vertices, got \(468, 2\)"):
+        renderer.render(np.zeros((468, 2)))
+    with pytest.raises(ValueError, match="NaN"):
+        renderer.render(np.full((468, 3), np.nan))
+    with pytest.raises(ValueError, match=r"background_bgr of shape \(480, 640, 3\)"):
+        renderer.set_background(np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(ValueError, match="square texture"):
+        renderer.set_texture(np.zeros((10, 20, 3), np.uint8))
+    with pytest.raises(ValueError, match="uint8"):
+        renderer.set_texture(np.zeros((8, 8, 3), np.float32))
+    with pytest.raises(ValueError, match="out of range"):
+        FaceRenderer(W, H, np.array([[0, 1, 5]]), np.zeros((3, 2)), np.zeros((4, 4, 3), np.uint8))
+
+
+def test_closed_renderer_refuses(mesh):
+    r = FaceRenderer(64, 48, mesh.triangles, mesh.uvs, smooth_texture(16))
+    r.close()
+    r.close()  # idempotent
+    with pytest.raises(RuntimeError, match="closed"):
+        r.render(frontal(mesh.vertices, 1.0, (32, 24, 0)))
