@@ -265,9 +265,15 @@ class UvRasteriser:
         return fill_invalid(texture, valid), valid
 
     def _visible(self, image_vertices: np.ndarray, pts: np.ndarray, w: int, h: int) -> np.ndarray:
-        """(k,) bool: the points (k, 3) are the nearest surface at their pixel."""
+        """(k,) bool: the points (k, 3) are the nearest surface at their pixel, and not on
+        the outline."""
         v = np.asarray(image_vertices, dtype=np.float64)
         zbuf = z_buffer(v, self.triangles, w, h)
+        # Bilinear sampling within a pixel of the silhouette mixes in what lies behind the
+        # head (hair, background): treat a 1-pixel rim inside the outline as hidden.
+        covered = np.isfinite(zbuf).astype(np.uint8)
+        rim = covered.astype(bool) & ~cv2.erode(covered, np.ones((3, 3), np.uint8)).astype(bool)
+        zbuf[rim] = -np.inf
         col = np.clip(np.rint(pts[:, 0]).astype(np.int64), 0, w - 1)
         row = np.clip(np.rint(pts[:, 1]).astype(np.int64), 0, h - 1)
         # Rounding to the pixel centre moves along a slanted surface, so allow the depth
@@ -306,7 +312,7 @@ def make_background(
 
     frame_bgr : (h, w, 3) uint8 BGR; image_vertices : (n, 3) image space; triangles (m, 3).
     The convex hull of the projected mesh, grown by ``dilate_fraction`` of its size (hair
-    and the jaw line sit just outside the mesh), is inpainted from its surroundings, so a
+    and the jaw line sit just outside the mesh), is filled from its surroundings, so a
     head that moves later leaves no ghost of this frame's face behind it.
     returns (h, w, 3) uint8 BGR.
     """
@@ -314,18 +320,7 @@ def make_background(
     v = _check_vertices(image_vertices, len(np.asarray(image_vertices)))
     extent = float(np.ptp(v[:, :2], axis=0).max())
     dilate = max(2, int(round(dilate_fraction * extent)))
-    mask = face_hull_mask(frame.shape[:2], v, triangles, dilate).astype(np.uint8) * 255
-    if not mask.any():
-        return frame.copy()
-    # Telea's method on a reduced image: the hole is large and smooth fill is all we need,
-    # and at full size the inpainting of a face-sized hole is slow.
-    h, w = frame.shape[:2]
-    scale = 4 if min(h, w) >= 256 else 1
-    small = cv2.resize(frame, (w // scale, h // scale), interpolation=cv2.INTER_AREA)
-    small_mask = cv2.resize(mask, (w // scale, h // scale), interpolation=cv2.INTER_NEAREST)
-    small_mask = cv2.dilate(small_mask, np.ones((3, 3), np.uint8))
-    filled = cv2.inpaint(small, small_mask, 3, cv2.INPAINT_TELEA)
-    up = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
-    out = frame.copy()
-    out[mask > 0] = up[mask > 0]
-    return out
+    hole = face_hull_mask(frame.shape[:2], v, triangles, dilate)
+    # Push-pull fill: a smooth blend of the surroundings. Telea / Navier-Stokes inpainting
+    # streak a face-sized hole into star patterns; the head is drawn over it anyway.
+    return fill_invalid(frame, ~hole)
