@@ -178,11 +178,13 @@ class _Packet:
     N_FIELDS: ClassVar[int]
 
     def _to_fields(self) -> list[Any]:
-        raise NotImplementedError
+        """Wire fields after [version, kind]; by default the dataclass fields in order."""
+        return [getattr(self, f.name) for f in dataclasses.fields(self)]  # type: ignore[arg-type]
 
     @classmethod
     def _from_fields(cls, fields: list[Any]) -> Self:
-        raise NotImplementedError
+        """Build from decoded wire fields; the constructor validates them."""
+        return cls(*fields)
 
     def __bytes__(self) -> bytes:
         data: bytes = msgpack.packb(
@@ -432,13 +434,6 @@ class RemPatch(_Packet):
         _set(self, "s_mean", _float("RemPatch.s_mean", self.s_mean, 0.0, 1.0))
         _set(self, "v_mean", _float("RemPatch.v_mean", self.v_mean, 0.0, 1.0))
 
-    def _to_fields(self) -> list[Any]:
-        return [self.seq, self.region, self.codec, self.data, self.h_peak, self.s_mean, self.v_mean]
-
-    @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        return cls(*f)
-
 
 @dataclass(frozen=True, eq=False)
 class KeyframeRequest(_Packet):
@@ -451,13 +446,6 @@ class KeyframeRequest(_Packet):
 
     def __post_init__(self) -> None:
         _set(self, "seq", _int("KeyframeRequest.seq", self.seq, 0, UINT32_MAX))
-
-    def _to_fields(self) -> list[Any]:
-        return [self.seq]
-
-    @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        return cls(*f)
 
 
 @dataclass(frozen=True, eq=False)
@@ -478,13 +466,6 @@ class Heartbeat(_Packet):
         _set(self, "seq", _int("Heartbeat.seq", self.seq, 0, UINT32_MAX))
         _set(self, "sent_us", _int("Heartbeat.sent_us", self.sent_us, INT64_MIN, INT64_MAX))
 
-    def _to_fields(self) -> list[Any]:
-        return [self.seq, self.sent_us]
-
-    @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        return cls(*f)
-
 
 @dataclass(frozen=True, eq=False)
 class ReceiverStats(_Packet):
@@ -497,13 +478,6 @@ class ReceiverStats(_Packet):
 
     def __post_init__(self) -> None:
         _set(self, "values", _float_map("ReceiverStats.values", self.values))
-
-    def _to_fields(self) -> list[Any]:
-        return [dict(self.values)]
-
-    @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        return cls(*f)
 
 
 @dataclass(frozen=True, eq=False)
@@ -518,13 +492,6 @@ class Bye(_Packet):
     def __post_init__(self) -> None:
         _set(self, "seq", _int("Bye.seq", self.seq, 0, UINT32_MAX))
 
-    def _to_fields(self) -> list[Any]:
-        return [self.seq]
-
-    @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        return cls(*f)
-
 
 @dataclass(frozen=True, eq=False)
 class SnapshotRequest(_Packet):
@@ -532,13 +499,6 @@ class SnapshotRequest(_Packet):
 
     KIND: ClassVar[Kind] = Kind.SNAPSHOT_REQUEST
     N_FIELDS: ClassVar[int] = 0
-
-    def _to_fields(self) -> list[Any]:
-        return []
-
-    @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        return cls()
 
 
 Packet: TypeAlias = (
