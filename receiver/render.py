@@ -72,9 +72,10 @@ class FaceRenderer:
     surface is double-sided and the texture is sampled bilinearly without mipmaps. The edge
     of the face is antialiased (4x multisampling) and blended with the background.
 
-    Vertex positions are uploaded into the existing GL vertex buffer each frame
-    (``glBufferSubData``) rather than rebuilding the pyrender mesh; see
-    benchmarks/bench_render.py for the comparison.
+    Vertex positions are re-uploaded into the existing GL vertex buffer each frame
+    (``glBufferData``, which orphans the old storage instead of waiting for it), rather than
+    rebuilding the pyrender mesh: 220 against 195 fps at 468 vertices, equal at 7,257
+    (benchmarks/bench_render.py).
 
     Each renderer owns its own EGL context, so several can live in one process; use one
     renderer from one thread.
@@ -133,6 +134,11 @@ class FaceRenderer:
         global _live_count
         with _live_lock:
             _live_count += 1
+        # pyrender reads back and linearises depth for every frame; the mask comes from
+        # alpha, so read colour only (pyrender is pinned to 0.1.45, whose private
+        # Renderer._read_main_framebuffer(scene, flags) this replaces for this instance).
+        inner = self._renderer._renderer
+        inner._read_main_framebuffer = lambda scene, flags: (self._read_rgba(inner), None)
         self._uploaded = False  # GL buffers exist only after the first render
         self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA
         logger.debug(
@@ -233,7 +239,7 @@ class FaceRenderer:
         self._place_camera(float(v[:, 2].min()), float(v[:, 2].max()))
         self._set_positions(gl)
 
-        rgba, _depth = self._renderer.render(self._scene, flags=self._flags)
+        rgba, _ = self._renderer.render(self._scene, flags=self._flags)
         self._uploaded = True
         return self._composite(rgba)
 
@@ -277,6 +283,20 @@ class FaceRenderer:
         assert self._renderer is not None
         self._renderer._platform.make_current()
 
+    @staticmethod
+    def _read_rgba(inner: pyrender.Renderer) -> np.ndarray:
+        """Resolve the multisampled framebuffer and read (H, W, 4) uint8, top row first."""
+        width, height = inner._main_fb_dims
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb_ms)
+        GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, inner._main_fb)
+        GL.glBlitFramebuffer(
+            0, 0, width, height, 0, 0, width, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
+        )
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb)
+        buf = GL.glReadPixels(0, 0, width, height, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
+        rgba = np.frombuffer(buf, dtype=np.uint8).reshape(height, width, 4)
+        return rgba[::-1]  # GL rows start at the bottom
+
     def _place_camera(self, z_min: float, z_max: float) -> None:
         # GL window x = X - cx + W/2 must equal x + 0.5 (pixel centre), so cx = W/2 - 0.5;
         # likewise for the flipped rows, cy = -(H/2 - 0.5). The camera sits _NEAR_MARGIN in
@@ -302,27 +322,35 @@ class FaceRenderer:
         self._interleaved[:, :3] = gl_positions
         self._make_current()
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, prim._buffers[0])
-        GL.glBufferSubData(
+        GL.glBufferData(
             GL.GL_ARRAY_BUFFER,
-            0,
             self._interleaved.nbytes,
             ctypes.c_void_p(self._interleaved.ctypes.data),
+            GL.GL_DYNAMIC_DRAW,
         )
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
 
     def _composite(self, rgba: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # Cleared to transparent black, so after the multisample resolve the colour is
-        # premultiplied by coverage: out = colour + background * (1 - alpha).
+        # premultiplied by coverage: out = colour + background * (1 - alpha). Only the
+        # face's bounding box needs blending.
         alpha = rgba[:, :, 3]
         mask = alpha > 127
-        color = rgba[:, :, :3]
+        out = (
+            np.zeros((self.height, self.width, 3), np.uint8)
+            if self._background is None
+            else self._background.copy()
+        )
+        rows = np.flatnonzero(alpha.any(axis=1))
+        if len(rows) == 0:
+            return out, mask
+        cols = np.flatnonzero(alpha[rows[0] : rows[-1] + 1].any(axis=0))
+        box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+        color = rgba[box][:, :, :3]
         if self._background is None:
-            return np.ascontiguousarray(color), mask
-        out = self._background.copy()
-        edge = (alpha > 0) & (alpha < 255)
-        out[alpha == 255] = color[alpha == 255]
-        if np.any(edge):
-            a = alpha[edge].astype(np.float32)[:, None] / 255.0
-            blended = color[edge].astype(np.float32) + self._background[edge] * (1.0 - a)
-            out[edge] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
+            out[box] = color
+            return out, mask
+        keep = (255 - alpha[box]).astype(np.uint16)[:, :, None]
+        blended = color + ((out[box] * keep + 127) // 255).astype(np.uint8)
+        out[box] = blended
         return out, mask
