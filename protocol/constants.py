@@ -68,8 +68,12 @@ PNG_MAGIC: Final = b"\x89PNG\r\n\x1a\n"
 
 #: Step of the pose scale, in natural-log units (the wire carries round(ln(scale) / step)).
 QUANT_POSE_SCALE: Final = "pose.scale"
-#: Step of the pose translation, in cm.
+#: Step of the pose translation, in the units of the pose's target frame (facewire: image pixels).
 QUANT_POSE_TRANSLATION: Final = "pose.translation"
+#: Step of the wire radial scales s_j (sent as s_j - 1, dimensionless).
+QUANT_WIRE_S: Final = "wire.s"
+#: Step of the wire control-point displacements q_jl, in cm (model space).
+QUANT_WIRE_Q: Final = "wire.q"
 DEFAULT_SCALE_STEP: Final = 1e-4
 DEFAULT_TRANSLATION_STEP_CM: Final = 0.01
 

@@ -9,7 +9,8 @@ The pose travels as eight int16, ``[qx, qy, qz, qw, s, tx, ty, tz]``:
 - a unit quaternion in scalar-last order (as :class:`scipy.spatial.transform.Rotation`),
   sign-canonicalised so that ``qw >= 0``, each component times 32767;
 - ``s = rint(ln(scale) / scale_step)``, a log scale so that zooming in and out are symmetric;
-- ``t = rint(translation / translation_step)``, translation in cm.
+- ``t = rint(translation / translation_step)``, translation in the pose's target units
+  (facewire's poses map the model into image pixels).
 """
 
 from __future__ import annotations
@@ -152,3 +153,15 @@ def decode_pose(
         raise ValueError(f"expected (8,) integer pose, got {q.dtype} array of shape {q.shape}")
     scale = float(np.exp(dequantise(q[4:5], scale_step)[0]))
     return Pose(quaternion_from_int16(q[:4]), scale, dequantise(q[5:8], translation_step))
+
+
+def wire_steps(
+    s_step: float, q_step: float, wire_layout: list[tuple[str, int]] | tuple[tuple[str, int], ...]
+) -> NDArray[np.float64]:
+    """Per-element steps of a wire parameter vector laid out as in ``Frame.params``.
+
+    The vector is ``s_j - 1`` for every curve j (``s_step``), then each curve's control
+    point displacements ``(n_ctrl_j, 3)`` flattened (``q_step``, cm).
+    """
+    n_q = 3 * sum(int(n) for _, n in wire_layout)
+    return np.concatenate([np.full(len(wire_layout), float(s_step)), np.full(n_q, float(q_step))])

@@ -12,6 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from protocol.clock import now_us
+
 logger = logging.getLogger(__name__)
 
 DEMO_CLIP = "demo_clip.mp4"
@@ -40,11 +42,6 @@ def demo_clip_path() -> Path:
     return Path(str(resources.files("sender") / "data" / DEMO_CLIP))
 
 
-def now_us() -> int:
-    """Monotonic clock in microseconds; shared by all processes of one machine."""
-    return time.monotonic_ns() // 1000
-
-
 class VideoSource:
     """Frames from a camera or a file.
 
@@ -54,15 +51,18 @@ class VideoSource:
     """
 
     def __init__(self, source: int | str | Path, realtime: bool = False) -> None:
-        self.is_camera = isinstance(source, int) or (isinstance(source, str) and source.isdigit())
-        if self.is_camera:
-            index = int(source)
+        camera = source if isinstance(source, int) else None
+        if isinstance(source, str) and source.isdigit():
+            camera = int(source)
+        self.is_camera = camera is not None
+        if camera is not None:
+            index = camera
             self._cap = cv2.VideoCapture(index)
             if not self._cap.isOpened():
                 raise CaptureError(f"cannot open camera {index}: no such device or it is busy")
             self.name = f"camera {index}"
         else:
-            path = Path(source)
+            path = Path(str(source))
             if not path.is_file():
                 raise CaptureError(f"cannot open video {path}: no such file")
             self._cap = cv2.VideoCapture(str(path))
@@ -80,11 +80,12 @@ class VideoSource:
         count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.frame_count = count if count > 0 and not self.is_camera else None
         self.realtime = realtime and not self.is_camera
+        self._origin_us, self._origin_index = now_us(), 0
         logger.info("opened %s: %dx%d at %.2f fps", self.name, self.width, self.height, self.fps)
 
     def frames(self, limit: int | None = None) -> Iterator[CapturedFrame]:
         """Yield frames in order, at most ``limit``; stops at the end of a file."""
-        start = now_us()
+        self.resync()
         index = 0
         while limit is None or index < limit:
             if self._first is not None:
@@ -94,12 +95,17 @@ class VideoSource:
                 if not ok or image is None:
                     break
             if self.realtime:
-                due = start + int(index * 1e6 / self.fps)
+                due = self._origin_us + int((index - self._origin_index) * 1e6 / self.fps)
                 wait = due - now_us()
                 if wait > 0:
                     time.sleep(wait / 1e6)
             yield CapturedFrame(index, image, now_us())
             index += 1
+
+    def resync(self, next_index: int = 0) -> None:
+        """Pace from now on: frame ``next_index`` is due at once (after a pause in reading)."""
+        self._origin_us = now_us()
+        self._origin_index = next_index
 
     def close(self) -> None:
         self._cap.release()

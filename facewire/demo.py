@@ -1,0 +1,202 @@
+"""``facewire demo``: a loopback call on a video file, recorded and measured.
+
+The sender runs in this process; the receiver runs in a child process (its own OpenGL
+context) and talks to it over real ZeroMQ sockets on 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import logging
+import multiprocessing as mp
+import queue
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from protocol.clock import now_us
+from protocol.constants import CHANNELS
+from protocol.packets import Bye
+from protocol.transport import SenderEndpoint, TransportError
+from sender.capture import CaptureError, VideoSource, demo_clip_path
+from sender.encoder import FaceEncoder
+
+logger = logging.getLogger(__name__)
+
+HOST = "127.0.0.1"
+FACE_SEARCH_FRAMES = 60  # frames read while looking for a face to build the session from
+JOIN_TIMEOUT_S = 60.0
+RECEIVER_TIMEOUT_S = 120.0
+
+
+def _receiver_main(ports: tuple[int, int], output: str, verbosity: int, results: Any) -> None:
+    """Child process: join the call, record, send the report back."""
+    logging.basicConfig(level=verbosity, format="%(asctime)s receiver %(name)s: %(message)s")
+    try:
+        from receiver.session import run_receiver
+
+        report = run_receiver(HOST, ports[0], ports[1], output, join_timeout_s=JOIN_TIMEOUT_S)
+        results.put(("ok", report.as_dict()))
+    except Exception as exc:  # reported as one line by the parent
+        logging.getLogger(__name__).debug("receiver failed", exc_info=True)
+        results.put(("error", f"receiver: {exc}"))
+
+
+def _wait_for_join(endpoint: SenderEndpoint, proc: Any, results: Any) -> None:
+    deadline = time.monotonic() + JOIN_TIMEOUT_S
+    while True:
+        try:
+            endpoint.wait_for_receiver(timeout_s=0.5)
+            return
+        except TransportError:
+            if not proc.is_alive() or time.monotonic() > deadline:
+                break
+    try:
+        status, detail = results.get(timeout=1.0)
+    except queue.Empty:
+        status, detail = "error", f"the receiver did not join within {JOIN_TIMEOUT_S:g} s"
+    raise RuntimeError(detail if status == "error" else "the receiver ended before the call began")
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    source = Path(args.input) if args.input else demo_clip_path()
+    if args.frames is not None and args.frames < 1:
+        raise ValueError(f"--frames must be at least 1, got {args.frames}")
+    video = VideoSource(source, realtime=not args.fast)
+    with video:
+        stats = _call(video, args)
+    stats["input"] = str(source)
+    if args.compare:
+        _write_compare(source, Path(args.output), Path(args.compare), stats["frames_out"])
+    _print_summary(stats, args)
+    if args.stats:
+        Path(args.stats).write_text(json.dumps(stats, indent=2) + "\n")
+    return 0
+
+
+def _call(video: VideoSource, args: argparse.Namespace) -> dict[str, Any]:
+    encoder = FaceEncoder(video.width, video.height, video.fps)
+    frames = video.frames(limit=args.frames)
+    buffered = []
+    snapshot = None
+    for frame in itertools.islice(frames, FACE_SEARCH_FRAMES):
+        buffered.append(frame)
+        snapshot = encoder.start(frame, seq=0)
+        if snapshot is not None:
+            break
+    if snapshot is None:
+        raise CaptureError(f"no face found in the first {len(buffered)} frames of {video.name}")
+
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
+    results = ctx.Queue()
+    verbosity = logging.getLogger().getEffectiveLevel()
+    with SenderEndpoint(HOST) as endpoint:
+        endpoint.set_snapshot(snapshot)
+        proc = ctx.Process(
+            target=_receiver_main, args=(endpoint.ports, str(args.output), verbosity, results)
+        )
+        proc.start()
+        try:
+            _wait_for_join(endpoint, proc, results)
+            # Frames read before the call began count as captured now; pacing restarts.
+            buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
+            video.resync(len(buffered))
+            busy = 0.0
+            frames_in = 0
+            for frame in itertools.chain(buffered, frames):
+                start = time.perf_counter()
+                endpoint.publish(encoder.encode(frame))
+                busy += time.perf_counter() - start
+                frames_in += 1
+                for packet in endpoint.poll(0):
+                    logger.debug("back channel: %r", packet)
+                endpoint.heartbeat_if_idle()
+            endpoint.publish(Bye(seq=frames_in))
+            status, report = results.get(timeout=RECEIVER_TIMEOUT_S)
+        except queue.Empty:
+            raise RuntimeError("the receiver did not finish in time") from None
+        finally:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.terminate()
+        if status == "error":
+            raise RuntimeError(report)
+        traffic = {
+            ch: endpoint.bytes_sent.get(ch, 0) + endpoint.bytes_received.get(ch, 0)
+            for ch in CHANNELS
+        }
+    duration = frames_in / video.fps
+    kbps = {ch: traffic[ch] * 8 / duration / 1000 for ch in CHANNELS}
+    kbps["total"] = sum(kbps.values())
+    return {
+        "frames_in": frames_in,
+        "frames_out": report["frames_out"],
+        "frames_held": report["frames_held"],
+        "frames_untracked": encoder.frames_untracked,
+        "quantiser_clipped": encoder.values_clipped,
+        "width": video.width,
+        "height": video.height,
+        "fps": video.fps,
+        "duration_s": duration,
+        "sender_fps": frames_in / busy if busy > 0 else 0.0,
+        "receiver_fps": report["receiver_fps"],
+        "latency_ms": report["latency_ms"],
+        "kbps": kbps,
+        "bytes": traffic,
+        "malformed": report["malformed"],
+        "ended_by": report["ended_by"],
+        "output": str(args.output),
+    }
+
+
+def _write_compare(source: Path, output: Path, compare: Path, count: int) -> None:
+    """Input (left) and reconstruction (right), frame by frame."""
+    inp, out = cv2.VideoCapture(str(source)), cv2.VideoCapture(str(output))
+    fps = inp.get(cv2.CAP_PROP_FPS) or 30.0
+    writer = None
+    try:
+        for _ in range(count):
+            ok_a, a = inp.read()
+            ok_b, b = out.read()
+            if not (ok_a and ok_b):
+                break
+            pair = np.hstack([a, b])
+            for text, x in (("input", 8), ("facewire", a.shape[1] + 8)):
+                cv2.putText(pair, text, (x, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
+            if writer is None:
+                writer = cv2.VideoWriter(
+                    str(compare), cv2.VideoWriter.fourcc(*"mp4v"), fps, pair.shape[1::-1]
+                )
+                if not writer.isOpened():
+                    raise OSError(f"cannot write video {compare}")
+            writer.write(pair)
+    finally:
+        inp.release()
+        out.release()
+        if writer is not None:
+            writer.release()
+
+
+def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
+    k = stats["kbps"]
+    lat = stats["latency_ms"]
+    print(
+        f"call: {stats['frames_in']} frames in, {stats['frames_out']} out "
+        f"({stats['width']}x{stats['height']} at {stats['fps']:.1f} fps, "
+        f"{stats['frames_untracked']} untracked, {stats['malformed']} malformed)"
+    )
+    print(
+        f"kbit/s: geometry {k['geometry']:.1f}  rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
+        f"control {k['control']:.2f}  total {k['total']:.1f}"
+    )
+    print(
+        f"sender {stats['sender_fps']:.0f} fps, receiver {stats['receiver_fps']:.0f} fps, "
+        f"latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms"
+    )
+    print(f"wrote {args.output}" + (f" and {args.compare}" if args.compare else ""))
