@@ -13,6 +13,7 @@ import json
 import logging
 import multiprocessing as mp
 import queue
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from protocol.clock import now_us
 from protocol.constants import CHANNELS
 from protocol.packets import Bye
 from protocol.transport import SenderEndpoint, TransportError
+from receiver.recorder import Mp4Recorder
 from sender.capture import CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 
@@ -65,22 +67,26 @@ def _wait_for_join(endpoint: SenderEndpoint, proc: Any, results: Any) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    source = Path(args.input) if args.input else demo_clip_path()
+    # A number names a camera; anything else is a file.
+    source: str | Path = args.input if args.input else demo_clip_path()
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
     video = VideoSource(source, realtime=not args.fast)
-    with video:
-        stats = _call(video, args)
-    stats["input"] = str(source)
-    if args.compare:
-        _write_compare(source, Path(args.output), Path(args.compare), stats["frames_out"])
+    with video, tempfile.TemporaryDirectory() as tmp:
+        # A camera cannot be read twice: keep what was sent for the side-by-side video.
+        sent = Path(tmp) / "input.mp4" if video.is_camera and args.compare else None
+        stats = _call(video, args, sent)
+        if args.compare:
+            reference = sent or Path(source)
+            _write_compare(reference, Path(args.output), Path(args.compare), stats["frames_out"])
+    stats["input"] = video.name
     _print_summary(stats, args)
     if args.stats:
         Path(args.stats).write_text(json.dumps(stats, indent=2) + "\n")
     return 0
 
 
-def _call(video: VideoSource, args: argparse.Namespace) -> dict[str, Any]:
+def _call(video: VideoSource, args: argparse.Namespace, sent: Path | None) -> dict[str, Any]:
     encoder = FaceEncoder(video.width, video.height, video.fps)
     frames = video.frames(limit=args.frames)
     buffered = []
@@ -109,15 +115,20 @@ def _call(video: VideoSource, args: argparse.Namespace) -> dict[str, Any]:
             video.resync(len(buffered))
             busy = 0.0
             frames_in = 0
+            keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
             for frame in itertools.chain(buffered, frames):
                 start = time.perf_counter()
                 endpoint.publish(encoder.encode(frame))
                 busy += time.perf_counter() - start
                 frames_in += 1
+                if keep is not None:
+                    keep.write(frame.image)
                 for packet in endpoint.poll(0):
                     logger.debug("back channel: %r", packet)
                 endpoint.heartbeat_if_idle()
             endpoint.publish(Bye(seq=frames_in))
+            if keep is not None:
+                keep.close()
             status, report = results.get(timeout=RECEIVER_TIMEOUT_S)
         except queue.Empty:
             raise RuntimeError("the receiver did not finish in time") from None

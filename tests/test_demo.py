@@ -1,0 +1,131 @@
+"""`facewire demo` end to end: two processes, real ZeroMQ on 127.0.0.1, real EGL, real MP4."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from facewire.cli import main
+from sender.capture import demo_clip_path
+
+FRAMES = 45
+
+
+def _read(path: Path) -> list[np.ndarray]:
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, image = cap.read()
+        if not ok:
+            break
+        frames.append(image)
+    cap.release()
+    return frames
+
+
+@pytest.fixture(scope="module")
+def call(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("demo")
+    rc = main(
+        [
+            "demo",
+            "--frames", str(FRAMES),
+            "--fast",
+            "--output", str(out / "out.mp4"),
+            "--compare", str(out / "cmp.mp4"),
+            "--stats", str(out / "stats.json"),
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    return out, json.loads((out / "stats.json").read_text())
+
+
+def test_every_input_frame_is_rebuilt_at_its_size(call: tuple[Path, dict]) -> None:
+    out, stats = call
+    assert stats["frames_in"] == stats["frames_out"] == FRAMES
+    rebuilt = _read(out / "out.mp4")
+    source = _read(demo_clip_path())[:FRAMES]
+    assert len(rebuilt) == FRAMES
+    assert rebuilt[0].shape == source[0].shape
+    compare = _read(out / "cmp.mp4")
+    assert len(compare) == FRAMES and compare[0].shape[1] == 2 * source[0].shape[1]
+
+
+def test_reconstruction_follows_the_input(call: tuple[Path, dict]) -> None:
+    out, _ = call
+    rebuilt = _read(out / "out.mp4")
+    source = _read(demo_clip_path())[:FRAMES]
+    psnr = [cv2.PSNR(a, b) for a, b in zip(source, rebuilt, strict=True)]
+    assert min(psnr) > 24.0, psnr
+    # Frame i rebuilds frame i: shifting by a few frames must be worse where the head moves.
+    shifted = np.mean([cv2.PSNR(a, b) for a, b in zip(source[10:], rebuilt[:-10], strict=True)])
+    assert np.mean(psnr[10:]) > shifted
+
+
+def test_stats_file_has_the_documented_fields(call: tuple[Path, dict]) -> None:
+    _, stats = call
+    for key in ("frames_in", "frames_out", "sender_fps", "receiver_fps"):
+        assert stats[key] > 0
+    assert 0 < stats["latency_ms"]["p50"] <= stats["latency_ms"]["p99"]
+    kbps = stats["kbps"]
+    assert set(kbps) == {"geometry", "rem", "snapshot", "control", "total"}
+    assert kbps["geometry"] > 0 and kbps["snapshot"] > 0
+    assert kbps["total"] == pytest.approx(sum(v for k, v in kbps.items() if k != "total"))
+    assert stats["malformed"] == 0 and stats["ended_by"] == "bye"
+
+
+def _facewire(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYOPENGL_PLATFORM="egl")
+    return subprocess.run(
+        [sys.executable, "-m", "facewire", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_missing_input_is_one_readable_line(tmp_path: Path) -> None:
+    r = _facewire("demo", "--input", "nope.mp4", cwd=tmp_path)
+    assert r.returncode == 1
+    assert r.stderr.strip() == "facewire: error: cannot open video nope.mp4: no such file"
+
+
+def test_unreadable_input_is_one_readable_line(tmp_path: Path) -> None:
+    (tmp_path / "junk.mp4").write_bytes(b"not a video at all" * 100)
+    r = _facewire("demo", "--input", "junk.mp4", cwd=tmp_path)
+    assert r.returncode == 1
+    assert "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("facewire: error: cannot open video")
+
+
+def test_video_without_a_face_is_one_readable_line(tmp_path: Path) -> None:
+    path = tmp_path / "empty.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 30, (320, 240))
+    for i in range(10):
+        writer.write(np.full((240, 320, 3), 40 + i, np.uint8))
+    writer.release()
+    r = _facewire("demo", "--input", str(path), cwd=tmp_path)
+    assert r.returncode == 1
+    assert "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        f"facewire: error: no face found in the first 10 frames of {path}"
+    )
+
+
+def test_missing_camera_is_one_readable_line(tmp_path: Path) -> None:
+    # No camera device exists on the test machines: index 9 opens nothing.
+    r = _facewire("demo", "--input", "9", cwd=tmp_path)
+    assert r.returncode == 1
+    assert "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        "facewire: error: cannot open camera 9: no such device or it is busy"
+    )
