@@ -1,0 +1,89 @@
+"""Sender encoder -> packet bytes -> receiver decoder, against the bundled clip's ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.packets import Frame, decode
+from receiver.decoder import FaceDecoder, SnapshotError
+from sender.capture import VideoSource, demo_clip_path
+
+# neutral, smile, surprise with a blink, talking. Blinks are left out of the marker check: the
+# 468-landmark model barely closes the lids (benchmarks/bench_call.py measures it).
+FRAMES = [0, 60, 140, 220]
+
+
+@pytest.fixture(scope="module")
+def clip() -> tuple[list, dict]:
+    truth = dict(np.load(demo_clip_path().with_name("demo_clip_truth.npz")))
+    with VideoSource(demo_clip_path()) as video:
+        frames = list(video.frames(limit=max(FRAMES) + 1))
+    return frames, truth
+
+
+@pytest.fixture(scope="module")
+def rebuilt(clip: tuple[list, dict]) -> dict[int, np.ndarray]:
+    from sender.encoder import FaceEncoder
+
+    frames, truth = clip
+    encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
+    snapshot = encoder.start(frames[0])
+    assert snapshot is not None
+    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    out = {}
+    try:
+        for f in frames:  # track every frame: the tracker follows from frame to frame
+            packet = decode(bytes(encoder.encode(f)))
+            assert isinstance(packet, Frame) and packet.seq == f.index
+            if f.index in FRAMES:
+                out[f.index] = decoder.image_vertices(packet)
+    finally:
+        decoder.close()
+    return out
+
+
+def test_rebuilt_markers_land_on_the_true_markers(clip, rebuilt) -> None:
+    _, truth = clip
+    vertices = truth["marker_vertices"]
+    lids = np.isin(vertices, [159, 145, 386, 374])
+    errors = []
+    for i in FRAMES:
+        visible = truth["marker_visible"][i] & ~(lids if i == 140 else False)
+        err = np.linalg.norm(rebuilt[i][vertices, :2] - truth["marker_xy"][i], axis=1)[visible]
+        assert np.median(err) < 6.0, (i, np.round(err, 1))
+        errors.append(err)
+    # Faces are ~200 px wide: a few pixels is a few per cent of the face.
+    pooled = np.concatenate(errors)
+    assert np.median(pooled) < 4.0 and pooled.max() < 14.0, np.round(pooled, 1)
+
+
+def _corner_drop(points: np.ndarray) -> float:
+    """How far (px) the mouth corners sit below the nose tip."""
+    return float((points[61, 1] + points[291, 1]) / 2 - points[1, 1])
+
+
+def _mouth_gap(points: np.ndarray) -> float:
+    return float(points[14, 1] - points[13, 1])
+
+
+def test_expressions_survive_the_call(rebuilt) -> None:
+    # Smile (frame 60): corners rise by ~15 px in the truth; the call keeps most of it.
+    assert _corner_drop(rebuilt[60]) < _corner_drop(rebuilt[0]) - 5.0
+    # Surprise (frame 140): the jaw opens, the corners drop.
+    assert _mouth_gap(rebuilt[140]) > _mouth_gap(rebuilt[0]) + 4.0
+    assert _corner_drop(rebuilt[140]) > _corner_drop(rebuilt[0]) + 5.0
+
+
+def test_decoder_refuses_a_snapshot_of_another_rig(clip) -> None:
+    from sender.encoder import FaceEncoder
+
+    frames, truth = clip
+    encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
+    snapshot = encoder.start(frames[0])
+    assert snapshot is not None
+    import dataclasses
+
+    other = dataclasses.replace(snapshot, rig_version=snapshot.rig_version + 1)
+    with pytest.raises(SnapshotError, match="rig version"):
+        FaceDecoder(other)
