@@ -1,0 +1,100 @@
+"""Time both ends of a call on the bundled clip, and how close the rebuild is to the truth.
+
+Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call.py [--threads T]
+
+Sender: track + pose + wire fit + quantise + packet bytes, per frame. Receiver: decode +
+dequantise + wire deformation + pose + render, per frame. Accuracy: rebuilt rig markers
+against the clip's ground-truth marker positions (pixels), and the eyelid gap at the
+scripted blinks. Glass-to-glass latency over sockets comes from `facewire demo --stats`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import cv2
+import numpy as np
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+from protocol.packets import decode  # noqa: E402
+from receiver.decoder import FaceDecoder  # noqa: E402
+from sender.capture import VideoSource, demo_clip_path  # noqa: E402
+from sender.encoder import FaceEncoder  # noqa: E402
+
+
+def _ms(samples: list[float]) -> str:
+    a = np.asarray(samples) * 1000
+    med, p90 = np.median(a), np.percentile(a, 90)
+    return f"median {med:.2f} ms, p90 {p90:.2f} ms ({1000 / med:.0f} fps)"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
+    args = parser.parse_args()
+    cv2.setNumThreads(args.threads)
+    truth = dict(np.load(demo_clip_path().with_name("demo_clip_truth.npz")))
+    with VideoSource(demo_clip_path()) as video:
+        frames = list(video.frames())
+        encoder = FaceEncoder(video.width, video.height, video.fps)
+    t0 = time.perf_counter()
+    snapshot = encoder.start(frames[0])
+    t_start = time.perf_counter() - t0
+    assert snapshot is not None
+    t0 = time.perf_counter()
+    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    t_join = time.perf_counter() - t0
+
+    send, recv, errors, lid = [], [], [], []
+    lid_open = 0.0
+    sizes = []
+    markers = truth["marker_vertices"]
+    for f in frames:
+        t0 = time.perf_counter()
+        data = bytes(encoder.encode(f))
+        send.append(time.perf_counter() - t0)
+        sizes.append(len(data))
+        t0 = time.perf_counter()
+        packet = decode(data)
+        vertices = decoder.image_vertices(packet)  # type: ignore[arg-type]
+        decoder.renderer.render(vertices)
+        recv.append(time.perf_counter() - t0)
+        visible = truth["marker_visible"][f.index]
+        err = np.linalg.norm(vertices[markers, :2] - truth["marker_xy"][f.index], axis=1)
+        errors.append(err[visible])
+        if f.index == 0:
+            lid_open = float(np.linalg.norm(vertices[159, :2] - vertices[145, :2]))
+        if f.index in truth["blink_frames"]:
+            lid.append(np.linalg.norm(vertices[159, :2] - vertices[145, :2]))
+    decoder.close()
+
+    err = np.concatenate(errors)
+    width = np.ptp(truth["marker_xy"][0][:, 0])
+    print(f"clip: {len(frames)} frames {video.width}x{video.height}, OpenCV threads {args.threads}")
+    print(
+        f"session start (sender, once): {t_start * 1000:.0f} ms; "
+        f"receiver join: {t_join * 1000:.0f} ms"
+    )
+    print(f"snapshot: {len(bytes(snapshot)) / 1024:.1f} KiB")
+    print(f"sender per frame:   {_ms(send)}")
+    print(f"receiver per frame: {_ms(recv)}")
+    fps = float(truth["fps"])
+    print(
+        f"frame packet: {np.mean(sizes):.0f} bytes = "
+        f"{np.mean(sizes) * 8 * fps / 1000:.1f} kbit/s at {fps:g} fps"
+    )
+    print(
+        f"marker error (px, markers spread over {width:.0f} px): median {np.median(err):.2f}, "
+        f"p90 {np.percentile(err, 90):.2f}, max {err.max():.2f}"
+    )
+    print(
+        f"eyelid gap (px) rebuilt at frame 0: {lid_open:.1f}; at the scripted blinks "
+        f"(lids closed in the clip): {np.round(lid, 1).tolist()}"
+    )
+
+
+if __name__ == "__main__":
+    main()
