@@ -23,7 +23,7 @@ import numpy as np
 
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
-from protocol.packets import Bye
+from protocol.packets import Bye, ReceiverStats
 from protocol.transport import SenderEndpoint, TransportError
 from receiver.recorder import Mp4Recorder
 from sender.capture import CaptureError, VideoSource, demo_clip_path
@@ -51,14 +51,19 @@ def _receiver_main(ports: tuple[int, int], output: str, verbosity: int, results:
 
 
 def _wait_for_join(endpoint: SenderEndpoint, proc: Any, results: Any) -> None:
+    """Until the receiver has the snapshot and says it is ready to render."""
     deadline = time.monotonic() + JOIN_TIMEOUT_S
-    while True:
-        try:
-            endpoint.wait_for_receiver(timeout_s=0.5)
-            return
-        except TransportError:
-            if not proc.is_alive() or time.monotonic() > deadline:
-                break
+    joined = False
+    while proc.is_alive() and time.monotonic() < deadline:
+        if not joined:
+            try:
+                endpoint.wait_for_receiver(timeout_s=0.5)
+                joined = True
+            except TransportError:
+                continue
+        for packet in endpoint.poll(timeout_ms=100):
+            if isinstance(packet, ReceiverStats) and packet.values.get("ready"):
+                return
     try:
         status, detail = results.get(timeout=1.0)
     except queue.Empty:

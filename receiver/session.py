@@ -64,6 +64,8 @@ def run_receiver(
     with ReceiverEndpoint(host, pub_port, snapshot_port) as endpoint:
         snapshot = endpoint.fetch_snapshot(timeout_ms=int(join_timeout_s * 1000))
         decoder = FaceDecoder(snapshot)
+        # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s).
+        endpoint.send_stats({"ready": 1.0})
         next_seq = snapshot.seq
         last: np.ndarray | None = None
         try:
