@@ -6,18 +6,15 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from imaging import H, W, gradient_background, save
 
-from models.mesh import load_canonical
 from receiver.render import FaceRenderer
 
-W, H = 640, 480
 T = 512
-OUT = Path(os.environ.get("FACEWIRE_TEST_OUT", "/tmp/facewire-tests"))
 
 
 def smooth_texture(size: int = T) -> np.ndarray:
@@ -34,11 +31,6 @@ def smooth_texture(size: int = T) -> np.ndarray:
     return tex
 
 
-def gradient_background() -> np.ndarray:
-    yy, xx = np.mgrid[0:H, 0:W]
-    return np.dstack([60 + xx / 8, 70 + yy / 6, 140 + 0 * xx]).astype(np.uint8)
-
-
 def frontal(mesh_vertices: np.ndarray, scale: float = 14.0, t=(320.0, 250.0, 500.0)) -> np.ndarray:
     """Image-space vertices of a frontal upright face: scale * diag(1, -1, -1) @ v + t."""
     return mesh_vertices * np.array([scale, -scale, -scale]) + np.asarray(t)
@@ -50,16 +42,6 @@ def sample_texture(tex: np.ndarray, uvs: np.ndarray) -> np.ndarray:
     mx = (uvs[:, 0] * s - 0.5).astype(np.float32)[None]
     my = (uvs[:, 1] * s - 0.5).astype(np.float32)[None]
     return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
-
-
-def save(name: str, img: np.ndarray) -> None:
-    OUT.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(OUT / name), img)
-
-
-@pytest.fixture(scope="module")
-def mesh():
-    return load_canonical()
 
 
 @pytest.fixture(scope="module")

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from imaging import H, W, gradient_background, psnr, save
 
-from models.mesh import load_canonical
 from receiver.render import FaceRenderer
 from sender.texture import (
     UvRasteriser,
@@ -20,9 +19,7 @@ from sender.texture import (
     z_buffer,
 )
 
-W, H = 640, 480
 T = 512
-OUT = Path(os.environ.get("FACEWIRE_TEST_OUT", "/tmp/facewire-tests"))
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 
 
@@ -37,32 +34,12 @@ def checker_texture(size: int = T) -> np.ndarray:
     return tex
 
 
-def gradient_background() -> np.ndarray:
-    yy, xx = np.mgrid[0:H, 0:W]
-    return np.dstack([60 + xx / 8, 70 + yy / 6, 140 + 0 * xx]).astype(np.uint8)
-
-
 def posed(vertices: np.ndarray, yaw_deg: float = 0.0, scale: float = 14.0, t=(320, 250, 0)):
     """Image-space vertices: scale * diag(1, -1, -1) @ R_y(yaw) @ v + t."""
     a = np.deg2rad(yaw_deg)
     ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     r = np.diag([1.0, -1.0, -1.0]) @ ry
     return scale * vertices @ r.T + np.asarray(t, float)
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
-
-
-def save(name: str, img: np.ndarray) -> None:
-    OUT.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(OUT / name), img)
-
-
-@pytest.fixture(scope="module")
-def mesh():
-    return load_canonical()
 
 
 @pytest.fixture(scope="module")
