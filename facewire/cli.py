@@ -16,15 +16,28 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
         description="Runs a sender and a receiver as two processes talking ZeroMQ on "
         "127.0.0.1, and records what the receiver rebuilds.",
     )
-    p.add_argument("--input", metavar="FILE", help="video to send (default: the bundled clip)")
-    p.add_argument("--output", metavar="FILE.mp4", default="demo-output.mp4",
-                   help="the reconstruction alone, frame i rebuilding input frame i")
-    p.add_argument("--compare", metavar="FILE.mp4", default="demo-compare.mp4",
-                   help="input and reconstruction side by side")
+    p.add_argument(
+        "--input", metavar="FILE", help="video file or camera number (default: the bundled clip)"
+    )
+    p.add_argument(
+        "--output",
+        metavar="FILE.mp4",
+        default="demo-output.mp4",
+        help="the reconstruction alone, frame i rebuilding input frame i",
+    )
+    p.add_argument(
+        "--compare",
+        metavar="FILE.mp4",
+        default="demo-compare.mp4",
+        help="input and reconstruction side by side",
+    )
     p.add_argument("--stats", metavar="FILE.json", help="write the call's statistics as JSON")
     p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
-    p.add_argument("--fast", action="store_true",
-                   help="read the file as fast as possible instead of at its frame rate")
+    p.add_argument(
+        "--fast",
+        action="store_true",
+        help="read the file as fast as possible instead of at its frame rate",
+    )
 
     def run(args: argparse.Namespace) -> int:
         from facewire.demo import run_demo
@@ -36,8 +49,9 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facewire", description=__doc__)
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more log output (-v info, -vv debug)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     _add_demo(sub)
     from facewire import wirestool
