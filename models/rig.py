@@ -127,6 +127,11 @@ class Rig:
             raise ValueError(f"unknown marker role {role!r}, expected one of {ROLES}")
         return [m for m in self.markers if m.role == role]
 
+    def wire_layout(self) -> list[tuple[str, int]]:
+        """(curve name, control point count) per wire, in file order: the order of the wire
+        parameters on the wire (``Snapshot.wire_layout``)."""
+        return [(c.name, c.control_points) for c in self.curves]
+
     def features(self) -> dict[str, list[int]]:
         """Feature name -> indices into ``curves`` of the wires of that feature (file order)."""
         out: dict[str, list[int]] = {}

@@ -43,7 +43,7 @@ class FaceDecoder:
                 f"snapshot uses rig version {snapshot.rig_version}, this receiver has {RIG_VERSION}"
             )
         self.rig = rig or load_rig()
-        layout = [(c.name, c.control_points) for c in self.rig.curves]
+        layout = self.rig.wire_layout()
         if [tuple(x) for x in snapshot.wire_layout] != layout:
             raise SnapshotError("snapshot wire layout does not match this receiver's rig")
         canonical = load_canonical()

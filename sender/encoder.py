@@ -96,6 +96,7 @@ class FaceEncoder:
         self.session: SessionModel | None = None
         self.wires: WireDeformer | None = None
         self._steps: np.ndarray | None = None
+        self._rest: np.ndarray | None = None
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self.frames_untracked = 0
         self.values_clipped = 0
@@ -122,7 +123,8 @@ class FaceEncoder:
         self.session = SessionModel(mesh, texture, background)
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         self.wires.prepare_fit()
-        layout = [(c.name, c.control_points) for c in self.rig.curves]
+        self._rest = self.wires.rest_params()
+        layout = self.rig.wire_layout()
         self._steps = wire_steps(QUANT_STEPS[QUANT_WIRE_S], QUANT_STEPS[QUANT_WIRE_Q], layout)
         self._last = (self._quantise_pose(pose), np.zeros(self.wires.n_params, np.int16))
         logger.info(
@@ -168,7 +170,7 @@ class FaceEncoder:
 
     def encode(self, frame: CapturedFrame) -> Frame:
         """The Frame packet for ``frame`` (``seq`` = frame index)."""
-        assert self.wires is not None and self._steps is not None, "start() first"
+        assert self._steps is not None and self._rest is not None, "start() first"
         result = self.analyse(frame.image)
         assert self._last is not None
         if result is None:
@@ -177,7 +179,7 @@ class FaceEncoder:
         else:
             pose, params = result
             pose_q = self._quantise_pose(pose)
-            params_q, clipped = quantise(params - self.wires.rest_params(), self._steps)
+            params_q, clipped = quantise(params - self._rest, self._steps)
             self.values_clipped += clipped
             self._last = (pose_q, params_q)
         return Frame(
