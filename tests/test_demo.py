@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from imaging import psnr
 
 from facewire.cli import main
 from sender.capture import demo_clip_path
@@ -157,17 +158,13 @@ def test_any_size_real_face(tmp_path: Path) -> None:
 
     tracker, triangles = LandmarkTracker(), load_canonical().triangles
 
-    def face_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-        mse = np.mean((a[mask].astype(float) - b[mask].astype(float)) ** 2)
-        return float(10 * np.log10(255**2 / mse))
-
     follows, still = [], []
     for a, b in zip(_read(path), rebuilt, strict=True):
         found = tracker.track(a)
         assert found is not None
         mask = face_hull_mask(a.shape[:2], found.points, triangles)
-        follows.append(face_psnr(a, b, mask))
-        still.append(face_psnr(a, rebuilt[0], mask))
+        follows.append(psnr(a[mask], b[mask]))
+        still.append(psnr(a[mask], rebuilt[0][mask]))
     # The face is ~80 px wide, so a pixel of misfit costs a lot: ~20-24 dB measured.
     assert min(follows) > 18.0, np.round(follows, 1)
     # ...but the rebuild must follow the head: better than holding the first picture.

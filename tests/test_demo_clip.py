@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from imaging import psnr
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
@@ -24,15 +25,8 @@ SURPRISE = 135  # a frame inside the held surprise
 TRACKED = (0, 60, SURPRISE, 200)
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
-
-
 @pytest.fixture(scope="module")
 def truth() -> dict[str, np.ndarray]:
-    if not TRUTH.exists():
-        pytest.skip(f"{TRUTH} missing")
     with np.load(TRUTH) as z:
         return {k: z[k] for k in z.files}
 
