@@ -23,7 +23,7 @@ import numpy as np
 
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
-from protocol.packets import Bye, ReceiverStats
+from protocol.packets import Bye, KeyframeRequest, ReceiverStats
 from protocol.transport import SenderEndpoint, TransportError
 from receiver.recorder import Mp4Recorder
 from sender.capture import CaptureError, VideoSource, demo_clip_path
@@ -122,14 +122,18 @@ def _call(video: VideoSource, args: argparse.Namespace, sent: Path | None) -> di
             frames_in = 0
             keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
             for frame in itertools.chain(buffered, frames):
+                for packet in endpoint.poll(0):
+                    logger.debug("back channel: %r", packet)
+                    if isinstance(packet, KeyframeRequest):
+                        encoder.request_keyframe()
                 start = time.perf_counter()
-                endpoint.publish(encoder.encode(frame))
+                packet = encoder.encode(frame)
+                if packet is not None:  # None: nothing visible changed since the last one
+                    endpoint.publish(packet)
                 busy += time.perf_counter() - start
                 frames_in += 1
                 if keep is not None:
                     keep.write(frame.image)
-                for packet in endpoint.poll(0):
-                    logger.debug("back channel: %r", packet)
                 endpoint.heartbeat_if_idle()
             endpoint.publish(Bye(seq=frames_in))
             if keep is not None:

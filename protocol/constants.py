@@ -14,20 +14,21 @@ from typing import Final
 logger = logging.getLogger(__name__)
 
 #: The first element of every packet. Bumped on any incompatible change of the wire format.
-PROTOCOL_VERSION: Final = 1
+PROTOCOL_VERSION: Final = 2
 
 
 class Kind(IntEnum):
-    """Packet kind codes, the second element of every packet."""
+    """Packet kind codes, the low nibble of every packet's header byte."""
 
     SNAPSHOT = 1
-    FRAME = 2
+    KEY_FRAME = 2
     REM_PATCH = 3
     KEYFRAME_REQUEST = 4
     HEARTBEAT = 5
     RECEIVER_STATS = 6
     BYE = 7
     SNAPSHOT_REQUEST = 8
+    DELTA_FRAME = 9
 
 
 # --- limits (decoding rejects anything beyond them) -----------------------------------------
@@ -44,18 +45,25 @@ MAX_MAP_LEN: Final = 256
 MAX_VERTICES: Final = 200_000
 #: Most int16 values in one parameter vector (params or one channel).
 MAX_PARAMS: Final = 8192
-#: Largest frame size in pixels along either axis.
-MAX_IMAGE_SIDE: Final = 16384
-#: Largest control-point count of one wire curve.
-MAX_CTRL: Final = 1024
+#: Largest frame size in pixels along either axis (a real call needs no more; a bigger image
+#: costs gigabytes to decode and render).
+MAX_IMAGE_SIDE: Final = 4096
+#: Most channels in a session's channel table.
+MAX_CHANNELS: Final = 32
+#: Largest range-coded body of one frame packet, in bytes.
+MAX_FRAME_BODY: Final = 16384
+#: Largest |value| of a quantised channel value (keeps every residual inside 32 bits).
+MAX_CHANNEL_VALUE: Final = 2**24
+#: Most frames one delta frame may advance (the sender sends at least this often).
+MAX_SEQ_STEP: Final = 30
+#: Largest |capture time - prediction| a delta frame can carry, milliseconds.
+MAX_TIME_RESIDUAL_MS: Final = 60_000
 
 # --- integer ranges ----------------------------------------------------------------------------
 
 UINT32_MAX: Final = 2**32 - 1
 INT64_MIN: Final = -(2**63)
 INT64_MAX: Final = 2**63 - 1
-#: Quantised values are clipped to +-INT16_LIMIT (-32768 is never produced, so negation is safe).
-INT16_LIMIT: Final = 32767
 
 # --- payload formats -----------------------------------------------------------------------------
 
@@ -63,19 +71,6 @@ INT16_LIMIT: Final = 32767
 REM_CODECS: Final = ("jpeg", "png")
 JPEG_MAGIC: Final = b"\xff\xd8\xff"
 PNG_MAGIC: Final = b"\x89PNG\r\n\x1a\n"
-
-# --- quantisation table keys (Snapshot.quant) and defaults -------------------------------------
-
-#: Step of the pose scale, in natural-log units (the wire carries round(ln(scale) / step)).
-QUANT_POSE_SCALE: Final = "pose.scale"
-#: Step of the pose translation, in the units of the pose's target frame (facewire: image pixels).
-QUANT_POSE_TRANSLATION: Final = "pose.translation"
-#: Step of the wire radial scales s_j (sent as s_j - 1, dimensionless).
-QUANT_WIRE_S: Final = "wire.s"
-#: Step of the wire control-point displacements q_jl, in cm (model space).
-QUANT_WIRE_Q: Final = "wire.q"
-DEFAULT_SCALE_STEP: Final = 1e-4
-DEFAULT_TRANSLATION_STEP_CM: Final = 0.01
 
 # --- bandwidth accounting channels ---------------------------------------------------------------
 

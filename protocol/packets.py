@@ -1,13 +1,16 @@
 """Wire packets: small frozen dataclasses, msgpack framing, one strict decoder.
 
-Every packet is one msgpack array ``[version, kind, field, ...]`` (see docs/protocol.md for the
-layout of each kind). Each class has ``parse(data)`` and ``__bytes__``; :func:`decode` is the
-one dispatch point that turns any received bytes into a packet or raises :class:`PacketError`
-with a precise message. Constructors validate their fields the same way, so a packet that can
-be built can be encoded and decoded again, and ``decode(bytes(p)) == p``.
+Every packet starts with one header byte, ``0x20 | kind`` (version 2 in the high nibble).
+Frame packets (:class:`KeyFrame`, :class:`DeltaFrame`) are then a few fixed binary fields and
+a range-coded body (:mod:`protocol.channels` decodes the body); every other kind is one msgpack
+array of its fields. See docs/protocol.md for the layout of each kind. Each class has
+``parse(data)`` and ``__bytes__``; :func:`decode` is the one dispatch point that turns any
+received bytes into a packet or raises :class:`PacketError` with a precise message.
+Constructors validate their fields the same way, so a packet that can be built can be encoded
+and decoded again, and ``decode(bytes(p)) == p``.
 
-Arrays are stored as read-only numpy arrays (int16 parameters, float32 vertices) and travel as
-little-endian bytes. Nothing is ever unpickled.
+Vertices are stored as a read-only float32 array and travel as little-endian bytes. Nothing is
+ever unpickled.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import dataclasses
 import logging
 import math
 import numbers
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self, TypeAlias
@@ -33,7 +37,8 @@ from protocol.constants import (
     INT64_MIN,
     JPEG_MAGIC,
     MAX_ARRAY_LEN,
-    MAX_CTRL,
+    MAX_CHANNELS,
+    MAX_FRAME_BODY,
     MAX_IMAGE_SIDE,
     MAX_MAP_LEN,
     MAX_PACKET_BYTES,
@@ -48,9 +53,6 @@ from protocol.constants import (
 )
 
 logger = logging.getLogger(__name__)
-
-POSE_LEN = 8  # [qx, qy, qz, qw, s, tx, ty, tz], see protocol.quant
-
 
 class PacketError(ValueError):
     """A packet is malformed, truncated, oversized, of unknown kind or of the wrong version."""
@@ -127,34 +129,6 @@ def _float_map(name: str, value: object, lo: float = -math.inf) -> dict[str, flo
     return out
 
 
-def _int16_array(name: str, value: object, shape: tuple[int, ...] | None = None) -> NDArray[Any]:
-    if not isinstance(value, np.ndarray) or value.dtype != np.int16 or value.ndim != 1:
-        got = (
-            f"{value.dtype} array of shape {value.shape}"
-            if isinstance(value, np.ndarray)
-            else _wire_type(value)
-        )
-        raise PacketError(f"{name}: expected 1-D int16 array, got {got}")
-    if shape is not None and value.shape != shape:
-        raise PacketError(f"{name}: expected shape {shape}, got {value.shape}")
-    if value.size > MAX_PARAMS:
-        raise PacketError(f"{name}: more than {MAX_PARAMS} values")
-    out = value.copy()
-    out.flags.writeable = False
-    return out
-
-
-def _int16_from_wire(name: str, value: object) -> NDArray[np.int16]:
-    data = _bytes(name, value)
-    if len(data) % 2:
-        raise PacketError(f"{name}: odd length {len(data)} for int16 data")
-    return np.frombuffer(data, dtype="<i2").astype(np.int16)
-
-
-def _int16_to_wire(array: NDArray[Any]) -> bytes:
-    return array.astype("<i2").tobytes()
-
-
 def _same(a: object, b: object) -> bool:
     """Equality that understands numpy arrays (same dtype, shape and values) inside maps."""
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
@@ -174,11 +148,11 @@ class _Packet:
 
     KIND: ClassVar[Kind]
     CHANNEL: ClassVar[str] = CHANNEL_CONTROL
-    #: Number of wire fields after ``[version, kind]``.
+    #: Number of msgpack fields after the header byte.
     N_FIELDS: ClassVar[int]
 
     def _to_fields(self) -> list[Any]:
-        """Wire fields after [version, kind]; by default the dataclass fields in order."""
+        """Wire fields after the header byte; by default the dataclass fields in order."""
         return [getattr(self, f.name) for f in dataclasses.fields(self)]  # type: ignore[arg-type]
 
     @classmethod
@@ -186,10 +160,21 @@ class _Packet:
         """Build from decoded wire fields; the constructor validates them."""
         return cls(*fields)
 
+    def _body(self) -> bytes:
+        data: bytes = msgpack.packb(self._to_fields(), use_bin_type=True)
+        return data
+
+    @classmethod
+    def _from_body(cls, body: bytes) -> Self:
+        fields = _unpack(body)
+        if not isinstance(fields, list):
+            raise PacketError(f"{cls.__name__}: expected a msgpack array, got {_wire_type(fields)}")
+        if len(fields) != cls.N_FIELDS:
+            raise PacketError(f"{cls.__name__} needs {cls.N_FIELDS} fields, got {len(fields)}")
+        return cls._from_fields(fields)
+
     def __bytes__(self) -> bytes:
-        data: bytes = msgpack.packb(
-            [PROTOCOL_VERSION, int(self.KIND), *self._to_fields()], use_bin_type=True
-        )
+        data = bytes([header_byte(self.KIND)]) + self._body()
         if len(data) > MAX_PACKET_BYTES:
             raise PacketError(
                 f"packet of {len(data)} bytes exceeds the limit of {MAX_PACKET_BYTES} bytes"
@@ -215,6 +200,11 @@ class _Packet:
     __hash__ = None  # type: ignore[assignment]
 
 
+def header_byte(kind: Kind) -> int:
+    """The first byte of every packet: the version in the high nibble, the kind in the low."""
+    return (PROTOCOL_VERSION << 4) | int(kind)
+
+
 def _set(obj: object, name: str, value: object) -> None:
     object.__setattr__(obj, name, value)
 
@@ -224,13 +214,17 @@ def _set(obj: object, name: str, value: object) -> None:
 
 @dataclass(frozen=True, eq=False)
 class Snapshot(_Packet):
-    """The session: person-specific mesh, texture, background, camera and quantisation tables.
+    """The session: person-specific mesh, texture, background, camera and channel table.
 
+    session_id : uint32, new each time a sender starts
+    seq : the first frame number the snapshot is valid for
     vertices : (n, 3) float, cm, model space (stored and sent as float32); vertex i is
         landmark i of the canonical mesh
     texture, background : JPEG or PNG bytes (may be empty)
-    quant : parameter group name -> quantisation step (see protocol.constants.QUANT_*)
-    wire_layout : (curve name, number of control points) in the order of Frame.params
+    channels : ``(name, size, step)`` of every frame channel, in coding order
+        (protocol.channels.ChannelSpec)
+    rig_hash : SHA-256 (hex) of the rig data both ends must share (models.rig.rig_hash)
+    keyframe_interval : frames between keyframes
     """
 
     KIND: ClassVar[Kind] = Kind.SNAPSHOT
@@ -245,17 +239,17 @@ class Snapshot(_Packet):
     vertices: NDArray[np.floating[Any]] = field(repr=False)
     texture: bytes = field(repr=False)
     background: bytes = field(repr=False)
-    quant: Mapping[str, float]
-    wire_layout: Sequence[tuple[str, int]]
-    rig_version: int
+    channels: Sequence[tuple[str, int, float]]
+    rig_hash: str
+    keyframe_interval: int
     meta: Mapping[str, str | int | float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        _set(self, "session_id", _int("Snapshot.session_id", self.session_id, 0, INT64_MAX))
+        _set(self, "session_id", _int("Snapshot.session_id", self.session_id, 0, UINT32_MAX))
         _set(self, "seq", _int("Snapshot.seq", self.seq, 0, UINT32_MAX))
         _set(self, "width", _int("Snapshot.width", self.width, 1, MAX_IMAGE_SIDE))
         _set(self, "height", _int("Snapshot.height", self.height, 1, MAX_IMAGE_SIDE))
-        fps = _float("Snapshot.fps", self.fps)
+        fps = _float("Snapshot.fps", self.fps, 0.0, 1000.0)
         if fps <= 0:
             raise PacketError(f"Snapshot.fps: must be > 0, got {fps}")
         _set(self, "fps", fps)
@@ -274,23 +268,16 @@ class Snapshot(_Packet):
         _set(self, "vertices", verts)
         _set(self, "texture", _image("Snapshot.texture", self.texture))
         _set(self, "background", _image("Snapshot.background", self.background))
-        _set(self, "quant", _float_map("Snapshot.quant", self.quant, lo=0.0))
-        if not isinstance(self.wire_layout, Sequence) or isinstance(self.wire_layout, str):
-            raise PacketError(
-                f"Snapshot.wire_layout: expected array, got {_wire_type(self.wire_layout)}"
-            )
-        layout = []
-        for i, entry in enumerate(self.wire_layout):
-            if not isinstance(entry, (list, tuple)) or len(entry) != 2:
-                raise PacketError(f"Snapshot.wire_layout[{i}]: expected [name, n_ctrl]")
-            layout.append(
-                (
-                    _str(f"Snapshot.wire_layout[{i}] name", entry[0]),
-                    _int(f"Snapshot.wire_layout[{i}] n_ctrl", entry[1], 1, MAX_CTRL),
-                )
-            )
-        _set(self, "wire_layout", tuple(layout))
-        _set(self, "rig_version", _int("Snapshot.rig_version", self.rig_version, 0, UINT32_MAX))
+        _set(self, "channels", _channel_table("Snapshot.channels", self.channels))
+        rig_hash = _str("Snapshot.rig_hash", self.rig_hash)
+        if len(rig_hash) != 64 or any(c not in "0123456789abcdef" for c in rig_hash):
+            raise PacketError("Snapshot.rig_hash: expected 64 lowercase hex digits (SHA-256)")
+        _set(self, "rig_hash", rig_hash)
+        _set(
+            self,
+            "keyframe_interval",
+            _int("Snapshot.keyframe_interval", self.keyframe_interval, 1, 65535),
+        )
         meta: dict[str, str | int | float] = {}
         for k, val in _map("Snapshot.meta", self.meta).items():
             key = _str("Snapshot.meta key", k)
@@ -316,9 +303,9 @@ class Snapshot(_Packet):
             self.vertices.astype("<f4").tobytes(),
             self.texture,
             self.background,
-            dict(self.quant),
-            [list(entry) for entry in self.wire_layout],
-            self.rig_version,
+            [list(entry) for entry in self.channels],
+            self.rig_hash,
+            self.keyframe_interval,
             dict(self.meta),
         ]
 
@@ -334,67 +321,102 @@ class Snapshot(_Packet):
         return cls(f[0], f[1], f[2], f[3], f[4], vertices, f[7], f[8], f[9], f[10], f[11], f[12])
 
 
-@dataclass(frozen=True, eq=False)
-class Frame(_Packet):
-    """One video frame's parameters.
+def _channel_table(name: str, value: object) -> tuple[tuple[str, int, float], ...]:
+    if not isinstance(value, Sequence) or isinstance(value, (str, bytes)):
+        raise PacketError(f"{name}: expected array, got {_wire_type(value)}")
+    if not 1 <= len(value) <= MAX_CHANNELS:
+        raise PacketError(f"{name}: {len(value)} channels outside [1, {MAX_CHANNELS}]")
+    table = []
+    for i, entry in enumerate(value):
+        if not isinstance(entry, (list, tuple)) or len(entry) != 3:
+            raise PacketError(f"{name}[{i}]: expected [name, size, step]")
+        step = _float(f"{name}[{i}] step", entry[2])
+        if step <= 0:
+            raise PacketError(f"{name}[{i}] step: must be > 0, got {step}")
+        table.append(
+            (_str(f"{name}[{i}] name", entry[0]), _int(f"{name}[{i}] size", entry[1], 1, MAX_PARAMS), step)
+        )
+    names = [t[0] for t in table]
+    if len(set(names)) != len(names):
+        raise PacketError(f"{name}: duplicate channel names")
+    return tuple(table)
 
-    seq : uint32 frame sequence number
-    capture_us : int64, sender clock, microseconds
-    key : True for a keyframe (self-contained), False for a delta frame
-    pose : (8,) int16 ``[qx, qy, qz, qw, s, tx, ty, tz]`` (protocol.quant.encode_pose)
-    params : (m,) int16 quantised wire parameters, in Snapshot.wire_layout order
-    channels : later parameter groups (e.g. "gde", "mouth"), name -> (k,) int16
+
+_KEY_HEAD = struct.Struct("<BIIq")  # counter, session_id, seq, capture_us
+
+
+@dataclass(frozen=True, eq=False)
+class KeyFrame(_Packet):
+    """A self-contained frame: absolute channel values, coding contexts reset.
+
+    counter : uint8, +1 (mod 256) per frame packet of the session
+    session_id : uint32, the session it belongs to
+    seq : uint32 frame number; capture_us : int64, sender clock, microseconds
+    body : range-coded channel values (protocol.channels)
     """
 
-    KIND: ClassVar[Kind] = Kind.FRAME
+    KIND: ClassVar[Kind] = Kind.KEY_FRAME
     CHANNEL: ClassVar[str] = CHANNEL_GEOMETRY
-    N_FIELDS: ClassVar[int] = 6
 
+    counter: int
+    session_id: int
     seq: int
     capture_us: int
-    key: bool
-    pose: NDArray[np.int16]
-    params: NDArray[np.int16]
-    channels: Mapping[str, NDArray[np.int16]] = field(default_factory=dict)
+    body: bytes = field(repr=False)
 
     def __post_init__(self) -> None:
-        _set(self, "seq", _int("Frame.seq", self.seq, 0, UINT32_MAX))
-        _set(self, "capture_us", _int("Frame.capture_us", self.capture_us, INT64_MIN, INT64_MAX))
-        if not isinstance(self.key, (bool, np.bool_)):
-            raise PacketError(f"Frame.key: expected bool, got {_wire_type(self.key)}")
-        _set(self, "key", bool(self.key))
-        _set(self, "pose", _int16_array("Frame.pose", self.pose, (POSE_LEN,)))
-        _set(self, "params", _int16_array("Frame.params", self.params))
-        channels = {}
-        for k, v in _map("Frame.channels", self.channels).items():
-            key = _str("Frame.channels key", k)
-            channels[key] = _int16_array(f"Frame.channels[{key!r}]", v)
-        _set(self, "channels", channels)
+        _set(self, "counter", _int("KeyFrame.counter", self.counter, 0, 255))
+        _set(self, "session_id", _int("KeyFrame.session_id", self.session_id, 0, UINT32_MAX))
+        _set(self, "seq", _int("KeyFrame.seq", self.seq, 0, UINT32_MAX))
+        _set(self, "capture_us", _int("KeyFrame.capture_us", self.capture_us, INT64_MIN, INT64_MAX))
+        _set(self, "body", _frame_body("KeyFrame.body", self.body))
 
-    def _to_fields(self) -> list[Any]:
-        return [
-            self.seq,
-            self.capture_us,
-            self.key,
-            _int16_to_wire(self.pose),
-            _int16_to_wire(self.params),
-            {k: _int16_to_wire(v) for k, v in self.channels.items()},
-        ]
+    def _body(self) -> bytes:
+        head = _KEY_HEAD.pack(self.counter, self.session_id, self.seq, self.capture_us)
+        return head + self.body
 
     @classmethod
-    def _from_fields(cls, f: list[Any]) -> Self:
-        channels = {
-            k: _int16_from_wire(f"Frame.channels[{k!r}]", v)
-            for k, v in _map("Frame.channels", f[5]).items()
-        }
-        return cls(
-            f[0],
-            f[1],
-            f[2],
-            _int16_from_wire("Frame.pose", f[3]),
-            _int16_from_wire("Frame.params", f[4]),
-            channels,
-        )
+    def _from_body(cls, body: bytes) -> Self:
+        if len(body) < _KEY_HEAD.size:
+            raise PacketError(
+                f"truncated KeyFrame: {len(body) + 1} bytes, needs at least {_KEY_HEAD.size + 1}"
+            )
+        return cls(*_KEY_HEAD.unpack_from(body), body[_KEY_HEAD.size :])
+
+
+@dataclass(frozen=True, eq=False)
+class DeltaFrame(_Packet):
+    """A frame predicted from the one before: needs every packet since the last keyframe.
+
+    counter : uint8, +1 (mod 256) per frame packet; a gap means a lost packet
+    body : range-coded frame step, capture-time residual and value residuals
+    """
+
+    KIND: ClassVar[Kind] = Kind.DELTA_FRAME
+    CHANNEL: ClassVar[str] = CHANNEL_GEOMETRY
+
+    counter: int
+    body: bytes = field(repr=False)
+
+    def __post_init__(self) -> None:
+        _set(self, "counter", _int("DeltaFrame.counter", self.counter, 0, 255))
+        _set(self, "body", _frame_body("DeltaFrame.body", self.body))
+
+    def _body(self) -> bytes:
+        return bytes([self.counter]) + self.body
+
+    @classmethod
+    def _from_body(cls, body: bytes) -> Self:
+        if not body:
+            raise PacketError("truncated DeltaFrame: 1 byte, needs at least 2")
+        return cls(body[0], body[1:])
+
+
+def _frame_body(name: str, value: object) -> bytes:
+    data = _bytes(name, value)
+    if len(data) > MAX_FRAME_BODY:
+        raise PacketError(f"{name}: {len(data)} bytes exceeds {MAX_FRAME_BODY}")
+    return data
 
 
 @dataclass(frozen=True, eq=False)
@@ -452,17 +474,20 @@ class KeyframeRequest(_Packet):
 class Heartbeat(_Packet):
     """Liveness. Published by the sender when idle; sent upstream by a receiver as a probe.
 
+    session_id : the sender's session (a receiver's probe carries the one it joined, or 0)
     seq : last frame sequence number published (sender) or received (receiver)
     sent_us : int64, sender's clock, microseconds
     """
 
     KIND: ClassVar[Kind] = Kind.HEARTBEAT
-    N_FIELDS: ClassVar[int] = 2
+    N_FIELDS: ClassVar[int] = 3
 
+    session_id: int
     seq: int
     sent_us: int
 
     def __post_init__(self) -> None:
+        _set(self, "session_id", _int("Heartbeat.session_id", self.session_id, 0, UINT32_MAX))
         _set(self, "seq", _int("Heartbeat.seq", self.seq, 0, UINT32_MAX))
         _set(self, "sent_us", _int("Heartbeat.sent_us", self.sent_us, INT64_MIN, INT64_MAX))
 
@@ -503,7 +528,8 @@ class SnapshotRequest(_Packet):
 
 Packet: TypeAlias = (
     Snapshot
-    | Frame
+    | KeyFrame
+    | DeltaFrame
     | RemPatch
     | KeyframeRequest
     | Heartbeat
@@ -516,7 +542,8 @@ _BY_KIND: dict[int, type[_Packet]] = {
     int(c.KIND): c
     for c in (
         Snapshot,
-        Frame,
+        KeyFrame,
+        DeltaFrame,
         RemPatch,
         KeyframeRequest,
         Heartbeat,
@@ -539,21 +566,10 @@ def _pairs(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
     return out
 
 
-def decode(data: bytes) -> Packet:
-    """Decode one packet; the only entry point for received bytes.
-
-    Raises :class:`PacketError` with a precise message for empty, oversized, truncated,
-    malformed, wrong-version, unknown-kind or badly typed input.
-    """
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise PacketError(f"expected bytes, got {type(data).__name__}")
-    n = len(data)
-    if n == 0:
-        raise PacketError("empty packet")
-    if n > MAX_PACKET_BYTES:
-        raise PacketError(f"packet of {n} bytes exceeds the limit of {MAX_PACKET_BYTES} bytes")
+def _unpack(data: bytes) -> Any:
+    """One strict msgpack value (limits on every length, no ext types, str keys only)."""
     try:
-        obj = msgpack.unpackb(
+        return msgpack.unpackb(
             data,
             raw=False,
             strict_map_key=True,
@@ -575,23 +591,35 @@ def decode(data: bytes) -> Packet:
         raise PacketError("malformed msgpack: invalid type byte") from None
     except ValueError as exc:  # msgpack limits, invalid UTF-8, incomplete input
         if "incomplete input" in str(exc):
-            raise PacketError(f"truncated packet ({n} bytes)") from None
+            raise PacketError(f"truncated packet ({len(data) + 1} bytes)") from None
         raise PacketError(f"malformed msgpack: {exc}") from None
-    if not isinstance(obj, list):
-        raise PacketError(f"packet must be a msgpack array, got {_wire_type(obj)}")
-    if len(obj) < 2:
-        raise PacketError(f"packet header needs [version, kind], got {len(obj)} element(s)")
-    version, kind = obj[0], obj[1]
-    if type(version) is not int:
-        raise PacketError(f"protocol version must be an int, got {_wire_type(version)}")
+    except Exception as exc:  # anything else msgpack may raise on hostile input
+        raise PacketError(f"malformed msgpack: {type(exc).__name__}") from None
+
+
+def decode(data: bytes) -> Packet:
+    """Decode one packet; the only entry point for received bytes.
+
+    Raises :class:`PacketError` with a precise message for empty, oversized, truncated,
+    malformed, wrong-version, unknown-kind or badly typed input.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise PacketError(f"expected bytes, got {type(data).__name__}")
+    data = bytes(data)
+    n = len(data)
+    if n == 0:
+        raise PacketError("empty packet")
+    if n > MAX_PACKET_BYTES:
+        raise PacketError(f"packet of {n} bytes exceeds the limit of {MAX_PACKET_BYTES} bytes")
+    version, kind = data[0] >> 4, data[0] & 0x0F
+    if 0x90 <= data[0] <= 0x9F and n > 1 and data[1] == 1:
+        # A msgpack array whose first element is 1: the version-1 framing.
+        raise PacketError(f"unsupported protocol version 1 (this peer speaks {PROTOCOL_VERSION})")
     if version != PROTOCOL_VERSION:
         raise PacketError(
-            f"unsupported protocol version {version} (this peer speaks {PROTOCOL_VERSION})"
+            f"unsupported protocol version {version} (header byte 0x{data[0]:02x}; "
+            f"this peer speaks {PROTOCOL_VERSION})"
         )
-    if type(kind) is not int or kind not in _BY_KIND:
-        raise PacketError(f"unknown packet kind {kind!r}")
-    cls = _BY_KIND[kind]
-    fields = obj[2:]
-    if len(fields) != cls.N_FIELDS:
-        raise PacketError(f"{cls.__name__} needs {cls.N_FIELDS} fields, got {len(fields)}")
-    return cls._from_fields(fields)  # type: ignore[return-value]
+    if kind not in _BY_KIND:
+        raise PacketError(f"unknown packet kind {kind}")
+    return _BY_KIND[kind]._from_body(data[1:])  # type: ignore[return-value]

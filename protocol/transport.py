@@ -40,8 +40,9 @@ from protocol.constants import (
 )
 from protocol.packets import (
     Bye,
-    Frame,
+    DeltaFrame,
     Heartbeat,
+    KeyFrame,
     KeyframeRequest,
     Packet,
     PacketError,
@@ -55,7 +56,7 @@ from protocol.packets import (
 logger = logging.getLogger(__name__)
 
 #: Packets that travel on the PUB/SUB update channel.
-UPDATE_KINDS = (Frame, RemPatch, Heartbeat, Bye, Snapshot)
+UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot)
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
 _MAX_DRAIN = 1000
 
@@ -117,6 +118,11 @@ class _Endpoint:
     def now_us(self) -> int:
         """The endpoint's clock in integer microseconds (``sent_us`` of heartbeats)."""
         return round(self._clock() * 1_000_000)
+
+    def _session_id(self) -> int:
+        """The session this endpoint serves or joined (0 before a snapshot)."""
+        snapshot = getattr(self, "snapshot", None) or getattr(self, "_snapshot", None)
+        return snapshot.session_id if snapshot is not None else 0
 
     def _check_open(self) -> None:
         if self._closed:
@@ -205,7 +211,9 @@ class SenderEndpoint(_Endpoint):
         for identity in waiting:
             self._serve(identity)
 
-    def publish(self, packet: Frame | RemPatch | Heartbeat | Bye | Snapshot) -> None:
+    def publish(
+        self, packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot
+    ) -> None:
         """Publish an update to every subscribed receiver (never blocks; drops past the HWM)."""
         self._check_open()
         if not isinstance(packet, UPDATE_KINDS):
@@ -214,14 +222,14 @@ class SenderEndpoint(_Endpoint):
         self._pub.send(data)
         self.bytes_sent[packet.CHANNEL] += len(data)
         self._last_publish = self._clock()
-        if isinstance(packet, Frame):
+        if isinstance(packet, KeyFrame):
             self._last_seq = packet.seq
 
     def heartbeat_if_idle(self) -> bool:
         """Publish a Heartbeat if nothing was published for HEARTBEAT_INTERVAL_S; True if sent."""
         if self._clock() - self._last_publish < HEARTBEAT_INTERVAL_S:
             return False
-        self.publish(Heartbeat(self._last_seq, self.now_us()))
+        self.publish(Heartbeat(self._session_id(), self._last_seq, self.now_us()))
         return True
 
     def poll(self, timeout_ms: int = 0) -> list[Packet]:
@@ -283,7 +291,7 @@ class SenderEndpoint(_Endpoint):
                 self._serve(identity)
         elif isinstance(packet, Heartbeat):
             self._accept(packet, data)
-            self.publish(Heartbeat(self._last_seq, self.now_us()))
+            self.publish(Heartbeat(self._session_id(), self._last_seq, self.now_us()))
         elif isinstance(packet, (KeyframeRequest, ReceiverStats)):
             self._accept(packet, data)
             self._inbox.append(packet)
@@ -350,7 +358,7 @@ class ReceiverEndpoint(_Endpoint):
                     f"no published packet from {self._pub_address} within {timeout_ms} ms "
                     "(is the sender running?)"
                 )
-            self._send(Heartbeat(self._last_seq, self.now_us()))
+            self._send(Heartbeat(self._session_id(), self._last_seq, self.now_us()))
             self._sub.poll(min(PROBE_INTERVAL_MS, remaining), zmq.POLLIN)
         # 2. Ask for the snapshot; updates keep queueing on SUB meanwhile.
         self._send(SnapshotRequest())
@@ -436,10 +444,10 @@ class ReceiverEndpoint(_Endpoint):
         self._last_heard = self._clock()
         self._bye = isinstance(packet, Bye)
         assert self.snapshot is not None
-        if isinstance(packet, (Frame, RemPatch)) and packet.seq < self.snapshot.seq:
+        if isinstance(packet, (KeyFrame, RemPatch)) and packet.seq < self.snapshot.seq:
             self.stats.dropped_old += 1
             return None
-        if isinstance(packet, Frame):
+        if isinstance(packet, KeyFrame):
             self._last_seq = packet.seq
         self.stats.received += 1
         self.bytes_received[packet.CHANNEL] += len(data)

@@ -1,8 +1,10 @@
 """Receiver reconstruction: a parameter packet in, a rendered frame out.
 
-The snapshot gives the person's mesh, texture and background; the wire deformer is built
-once from that mesh and the bundled rig. Per frame: dequantise -> wire deformation (seed 000,
-Eq. 1-3, a sparse matrix-vector product) -> head pose -> offscreen render over the background.
+The snapshot gives the person's mesh, texture, background and channel table; the wire
+deformer is built once from that mesh and the bundled rig. Per frame: decode the channels
+(protocol.channels) -> dequantise -> wire basis coefficients to wire parameters -> wire
+deformation (seed 000, Eq. 1-3, a sparse matrix-vector product) -> head pose -> offscreen
+render over the background.
 """
 
 from __future__ import annotations
@@ -12,13 +14,23 @@ import logging
 import cv2
 import numpy as np
 
+from models.face_channels import (
+    POSE_ROTATION,
+    POSE_SCALE,
+    POSE_TRANSLATION,
+    WIRE,
+    WireBasis,
+    load_wire_basis,
+    pose_from_channels,
+    rig_hash,
+)
 from models.mesh import load_canonical
 from models.pose import Pose
-from models.rig import RIG_VERSION, Rig, load_rig
+from models.rig import Rig, load_rig
 from models.wires import WireDeformer
-from protocol.constants import QUANT_POSE_SCALE, QUANT_POSE_TRANSLATION, QUANT_WIRE_Q, QUANT_WIRE_S
-from protocol.packets import Frame, Snapshot
-from protocol.quant import decode_pose, dequantise, wire_steps
+from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
+from protocol.packets import DeltaFrame, KeyFrame, Snapshot
+from protocol.quant import dequantise
 
 logger = logging.getLogger(__name__)
 
@@ -37,27 +49,28 @@ def _image(data: bytes, what: str) -> np.ndarray:
 class FaceDecoder:
     """Rebuilds frames of one session from its snapshot."""
 
-    def __init__(self, snapshot: Snapshot, rig: Rig | None = None) -> None:
-        if snapshot.rig_version != RIG_VERSION:
+    def __init__(
+        self, snapshot: Snapshot, rig: Rig | None = None, basis: WireBasis | None = None
+    ) -> None:
+        if snapshot.rig_hash != rig_hash():
             raise SnapshotError(
-                f"snapshot uses rig version {snapshot.rig_version}, this receiver has {RIG_VERSION}"
+                f"the sender's rig ({snapshot.rig_hash[:12]}...) differs from this receiver's "
+                f"({rig_hash()[:12]}...): both ends need the same facewire rig data"
             )
         self.rig = rig or load_rig()
-        layout = self.rig.wire_layout()
-        if [tuple(x) for x in snapshot.wire_layout] != layout:
-            raise SnapshotError("snapshot wire layout does not match this receiver's rig")
+        self.basis = basis or load_wire_basis()
+        expected = {POSE_ROTATION: 3, POSE_SCALE: 1, POSE_TRANSLATION: 3, WIRE: self.basis.size}
+        got = {name: size for name, size, _ in snapshot.channels}
+        if got != expected:
+            raise SnapshotError(f"snapshot channels {got} do not match this receiver's {expected}")
+        self.specs = [ChannelSpec(*c) for c in snapshot.channels]
+        self.channels = ChannelDecoder(self.specs, round(1e6 / snapshot.fps))
         canonical = load_canonical()
         vertices = np.asarray(snapshot.vertices, dtype=np.float64)
         if vertices.shape != canonical.vertices.shape:
             raise SnapshotError(
                 f"snapshot mesh has shape {vertices.shape}, expected {canonical.vertices.shape}"
             )
-        try:
-            q = snapshot.quant
-            self._pose_steps = (q[QUANT_POSE_SCALE], q[QUANT_POSE_TRANSLATION])
-            self._steps = wire_steps(q[QUANT_WIRE_S], q[QUANT_WIRE_Q], layout)
-        except KeyError as exc:
-            raise SnapshotError(f"snapshot quantisation table lacks {exc}") from None
         self.mesh = canonical.with_vertices(vertices)
         self.wires = WireDeformer.from_rig(vertices, self.rig)
         self._rest = self.wires.rest_params()
@@ -78,25 +91,24 @@ class FaceDecoder:
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
         self.renderer.render(self.mesh.vertices * [1.0, -1.0, -1.0])
 
-    def parameters(self, frame: Frame) -> tuple[Pose, np.ndarray]:
-        """Dequantised head pose and wire parameters of ``frame``."""
-        if frame.params.shape != self._steps.shape:
-            raise ValueError(
-                f"frame {frame.seq} carries {frame.params.size} parameters, "
-                f"expected {self._steps.size}"
-            )
-        wp = decode_pose(frame.pose, *self._pose_steps)
-        pose = Pose.from_quaternion(wp.quaternion, wp.scale, wp.translation)
-        return pose, self._rest + dequantise(frame.params, self._steps)
+    def decode(self, packet: KeyFrame | DeltaFrame) -> FrameValues:
+        """Channel values of a frame packet (raises ChainBroken after a gap, PacketError)."""
+        return self.channels.decode(packet)
 
-    def image_vertices(self, frame: Frame) -> np.ndarray:
+    def parameters(self, values: FrameValues) -> tuple[Pose, np.ndarray]:
+        """Dequantised head pose and wire parameters of one frame's values."""
+        floats = {s.name: dequantise(values.values[s.name], s.step) for s in self.specs}
+        pose = pose_from_channels(floats)
+        return pose, self._rest + self.basis.params(floats[WIRE])
+
+    def image_vertices(self, values: FrameValues) -> np.ndarray:
         """(n, 3) deformed, posed vertices in the sender's image space (pixels)."""
-        pose, params = self.parameters(frame)
+        pose, params = self.parameters(values)
         return pose.apply(self.wires.deform(params))
 
-    def reconstruct(self, frame: Frame) -> np.ndarray:
-        """(h, w, 3) uint8 BGR rendering of ``frame``."""
-        image, _ = self.renderer.render(self.image_vertices(frame))
+    def reconstruct(self, values: FrameValues) -> np.ndarray:
+        """(h, w, 3) uint8 BGR rendering of one frame's values."""
+        image, _ = self.renderer.render(self.image_vertices(values))
         return image
 
     def close(self) -> None:

@@ -2,7 +2,9 @@
 
 Per frame: landmarks (markerless tracker) -> head pose (similarity fitted on the rig's pose
 markers) -> landmarks brought back to model space -> wire parameters by the least-squares
-extraction of seed 000 (pseudo-inverse computed once per session) -> quantised Frame packet.
+extraction of seed 000 (pseudo-inverse computed once per session) -> coefficients of the rig's
+wire basis -> channel values quantised with hysteresis -> key or delta frame packet
+(protocol.channels), or no packet when nothing visible changed.
 
 The session model (what the receiver loads once) is built from the first frame with a face:
 the person's mesh (landmarks in model space), the texture unwrapped from that frame and the
@@ -17,33 +19,32 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from models.face_channels import (
+    DEFAULT_ERROR_PX,
+    HYSTERESIS,
+    WIRE,
+    WireBasis,
+    channel_steps,
+    load_wire_basis,
+    pose_channels,
+    rig_hash,
+)
 from models.mesh import FaceMesh, load_canonical
 from models.pose import Pose, estimate_pose
-from models.rig import RIG_VERSION, Rig, load_rig
+from models.rig import Rig, load_rig
 from models.wires import WireDeformer
-from protocol.constants import (
-    QUANT_POSE_SCALE,
-    QUANT_POSE_TRANSLATION,
-    QUANT_WIRE_Q,
-    QUANT_WIRE_S,
-)
-from protocol.packets import Frame, Snapshot
-from protocol.quant import Pose as WirePose
-from protocol.quant import encode_pose, quantise, wire_steps
+from protocol.channels import ChannelEncoder, ChannelSpec
+from protocol.packets import DeltaFrame, KeyFrame, Snapshot
+from protocol.quant import quantise
 from sender.capture import CapturedFrame
 from sender.landmarks import LandmarkTracker
 from sender.texture import UvRasteriser, make_background
 
 logger = logging.getLogger(__name__)
 
-#: Quantisation steps sent in the snapshot (receiver reads them from there).
-QUANT_STEPS = {
-    QUANT_POSE_SCALE: 1e-4,  # ln units: 0.01 % of scale
-    QUANT_POSE_TRANSLATION: 0.05,  # image pixels
-    QUANT_WIRE_S: 1e-3,
-    QUANT_WIRE_Q: 0.005,  # cm: 0.05 mm
-}
 TEXTURE_SIZE = 512
+#: A keyframe every this many seconds (and whenever a receiver asks for one).
+KEYFRAME_INTERVAL_S = 2.0
 JPEG_QUALITY = 90
 
 
@@ -69,11 +70,12 @@ def _jpeg(image: np.ndarray) -> bytes:
 
 
 class FaceEncoder:
-    """Turns frames into Frame packets for one session.
+    """Turns frames into frame packets for one session.
 
     Call :meth:`start` with frames until it returns a Snapshot (the first frame with a face),
     then :meth:`encode` for every frame. A frame where tracking fails repeats the last
-    parameters, so the receiver still shows frame i for input frame i.
+    parameters. ``error_px`` is the most one channel's quantisation may move a vertex, in
+    pixels at the call's size.
     """
 
     def __init__(
@@ -84,28 +86,33 @@ class FaceEncoder:
         tracker: LandmarkTracker | None = None,
         rig: Rig | None = None,
         session_id: int = 1,
+        error_px: float = DEFAULT_ERROR_PX,
+        basis: WireBasis | None = None,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker = tracker or LandmarkTracker()
         self.rig = rig or load_rig()
+        self.basis = basis or load_wire_basis()
         self.canonical = load_canonical()
         self.session_id = session_id
+        self.error_px = error_px
         self._pose_vertices = np.array(
             sorted({m.vertex for m in self.rig.markers_with_role("pose")}), dtype=np.int64
         )
         self.session: SessionModel | None = None
         self.wires: WireDeformer | None = None
-        self._steps: np.ndarray | None = None
-        self._rest: np.ndarray | None = None
-        self._last: tuple[np.ndarray, np.ndarray] | None = None
+        self.rest_params = np.zeros(0)
+        self.steps: dict[str, float] = {}
+        self._projector = np.zeros((0, 0))
+        self._channels: ChannelEncoder | None = None
+        self._last_values: dict[str, np.ndarray] | None = None
         self.frames_untracked = 0
         self.values_clipped = 0
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
 
-        ``seq`` is the first frame number the snapshot is valid for (default: this frame's);
-        frames between it and this one are sent at this frame's pose with rest parameters.
+        ``seq`` is the first frame number the snapshot is valid for (default: this frame's).
         """
         found = self.tracker.track(frame.image)
         if found is None:
@@ -123,15 +130,25 @@ class FaceEncoder:
         self.session = SessionModel(mesh, texture, background)
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         self.wires.prepare_fit()
-        self._rest = self.wires.rest_params()
-        layout = self.rig.wire_layout()
-        self._steps = wire_steps(QUANT_STEPS[QUANT_WIRE_S], QUANT_STEPS[QUANT_WIRE_Q], layout)
-        self._last = (self._quantise_pose(pose), np.zeros(self.wires.n_params, np.int16))
+        self.rest_params = self.wires.rest_params()
+        self._projector = self.basis.projector(self.wires.matrix)
+        radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
+        self.steps = channel_steps(radius, pose.scale, self.error_px)
+        specs = [
+            ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
+        ] + [ChannelSpec(WIRE, self.basis.size, self.steps[WIRE])]
+        interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
+        self._channels = ChannelEncoder(
+            specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
+        )
+        self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
         logger.info(
-            "session model from frame %d: face %.0f px wide, %d wire parameters",
+            "session model from frame %d: face %.0f px wide, %d wire parameters in %d "
+            "basis coefficients",
             frame.index,
             np.ptp(points[:, 0]),
             self.wires.n_params,
+            self.basis.size,
         )
         return Snapshot(
             session_id=self.session_id,
@@ -142,9 +159,9 @@ class FaceEncoder:
             vertices=mesh.vertices.astype(np.float32),
             texture=_jpeg(texture),
             background=_jpeg(background),
-            quant=dict(QUANT_STEPS),
-            wire_layout=layout,
-            rig_version=RIG_VERSION,
+            channels=[(s.name, s.size, s.step) for s in specs],
+            rig_hash=rig_hash(),
+            keyframe_interval=interval,
             meta={"tracker": "mediapipe-landmarks", "texture_size": TEXTURE_SIZE},
         )
 
@@ -160,32 +177,35 @@ class FaceEncoder:
         params = self.wires.fit(pose.inverse(points))
         return pose, params
 
-    def _quantise_pose(self, pose: Pose) -> np.ndarray:
-        wire_pose = WirePose(pose.as_quaternion(), pose.scale, pose.translation)
-        pose_q, clipped = encode_pose(
-            wire_pose, QUANT_STEPS[QUANT_POSE_SCALE], QUANT_STEPS[QUANT_POSE_TRANSLATION]
-        )
-        self.values_clipped += clipped
-        return pose_q
+    def channel_values(self, pose: Pose, params: np.ndarray) -> dict[str, np.ndarray]:
+        """Float channel values of a pose and wire parameters (before quantisation)."""
+        values = pose_channels(pose)
+        values[WIRE] = self._projector @ (params - self.rest_params)
+        return values
 
-    def encode(self, frame: CapturedFrame) -> Frame:
-        """The Frame packet for ``frame`` (``seq`` = frame index)."""
-        assert self._steps is not None and self._rest is not None, "start() first"
+    def request_keyframe(self) -> None:
+        """The next packet is a keyframe (a receiver asked for one)."""
+        if self._channels is not None:
+            self._channels.request_keyframe()
+
+    def encode(self, frame: CapturedFrame) -> KeyFrame | DeltaFrame | None:
+        """The packet for ``frame`` (``seq`` = frame index), or None when nothing changed."""
+        assert self._channels is not None, "start() first"
+        assert self._last_values is not None
         result = self.analyse(frame.image)
-        assert self._last is not None
         if result is None:
-            self.frames_untracked += 1
-            pose_q, params_q = self._last
+            self.frames_untracked += 1  # repeat the last values
         else:
-            pose, params = result
-            pose_q = self._quantise_pose(pose)
-            params_q, clipped = quantise(params - self._rest, self._steps)
+            self._last_values = self._quantise(self.channel_values(*result), self._last_values)
+        packet, _ = self._channels.encode(frame.index, frame.capture_us, self._last_values)
+        return packet
+
+    def _quantise(
+        self, floats: dict[str, np.ndarray], previous: dict[str, np.ndarray] | None
+    ) -> dict[str, np.ndarray]:
+        values = {}
+        for name, x in floats.items():
+            prev = None if previous is None else previous[name]
+            values[name], clipped = quantise(x, self.steps[name], prev, HYSTERESIS)
             self.values_clipped += clipped
-            self._last = (pose_q, params_q)
-        return Frame(
-            seq=frame.index,
-            capture_us=frame.capture_us,
-            key=True,
-            pose=pose_q,
-            params=params_q,
-        )
+        return values
