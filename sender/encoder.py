@@ -44,7 +44,7 @@ logger = logging.getLogger(__name__)
 
 TEXTURE_SIZE = 512
 #: A keyframe every this many seconds (and whenever a receiver asks for one).
-KEYFRAME_INTERVAL_S = 2.0
+KEYFRAME_INTERVAL_S = 4.0
 JPEG_QUALITY = 90
 
 
@@ -177,10 +177,14 @@ class FaceEncoder:
         params = self.wires.fit(pose.inverse(points))
         return pose, params
 
+    def projected(self, params: np.ndarray) -> np.ndarray:
+        """(K,) wire basis coefficients (cm) closest to wire parameters ``params``."""
+        return np.asarray(self._projector @ (params - self.rest_params))
+
     def channel_values(self, pose: Pose, params: np.ndarray) -> dict[str, np.ndarray]:
         """Float channel values of a pose and wire parameters (before quantisation)."""
         values = pose_channels(pose)
-        values[WIRE] = self._projector @ (params - self.rest_params)
+        values[WIRE] = self.projected(params)
         return values
 
     def request_keyframe(self) -> None:
@@ -190,9 +194,13 @@ class FaceEncoder:
 
     def encode(self, frame: CapturedFrame) -> KeyFrame | DeltaFrame | None:
         """The packet for ``frame`` (``seq`` = frame index), or None when nothing changed."""
-        assert self._channels is not None, "start() first"
-        assert self._last_values is not None
-        result = self.analyse(frame.image)
+        return self.encode_analysed(frame, self.analyse(frame.image))
+
+    def encode_analysed(
+        self, frame: CapturedFrame, result: tuple[Pose, np.ndarray] | None
+    ) -> KeyFrame | DeltaFrame | None:
+        """:meth:`encode` for a frame already analysed (``result`` of :meth:`analyse`)."""
+        assert self._channels is not None and self._last_values is not None, "start() first"
         if result is None:
             self.frames_untracked += 1  # repeat the last values
         else:

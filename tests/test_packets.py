@@ -14,8 +14,9 @@ from hypothesis.extra import numpy as hnp
 from protocol.constants import MAX_PACKET_BYTES, PNG_MAGIC
 from protocol.packets import (
     Bye,
-    Frame,
+    DeltaFrame,
     Heartbeat,
+    KeyFrame,
     KeyframeRequest,
     PacketError,
     ReceiverStats,
@@ -35,22 +36,20 @@ uint32 = st.integers(0, 2**32 - 1)
 int64 = st.integers(-(2**63), 2**63 - 1)
 names = st.text(min_size=1, max_size=20)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
-int16s = st.integers(-32768, 32767)
-int16_vectors = hnp.arrays(np.int16, st.integers(0, 64), elements=int16s)
 images = st.sampled_from([b"", JPEG, PNG])
+bodies = st.binary(max_size=64)
 
-frames = st.builds(
-    Frame,
-    seq=uint32,
-    capture_us=int64,
-    key=st.booleans(),
-    pose=hnp.arrays(np.int16, 8, elements=int16s),
-    params=int16_vectors,
-    channels=st.dictionaries(names, int16_vectors, max_size=3),
+key_frames = st.builds(KeyFrame, st.integers(0, 255), uint32, uint32, int64, bodies)
+delta_frames = st.builds(DeltaFrame, st.integers(0, 255), bodies)
+channel_tables = st.lists(
+    st.tuples(names, st.integers(1, 64), st.floats(1e-6, 10.0)),
+    min_size=1,
+    max_size=6,
+    unique_by=lambda t: t[0],
 )
 snapshots = st.builds(
     Snapshot,
-    session_id=st.integers(0, 2**63 - 1),
+    session_id=uint32,
     seq=uint32,
     width=st.integers(1, 4096),
     height=st.integers(1, 4096),
@@ -60,9 +59,9 @@ snapshots = st.builds(
     ),
     texture=images,
     background=images,
-    quant=st.dictionaries(names, st.floats(1e-6, 10.0), max_size=5),
-    wire_layout=st.lists(st.tuples(names, st.integers(1, 64)), max_size=6),
-    rig_version=uint32,
+    channels=channel_tables,
+    rig_hash=st.text("0123456789abcdef", min_size=64, max_size=64),
+    keyframe_interval=st.integers(1, 65535),
     meta=st.dictionaries(names, st.one_of(st.text(max_size=30), int64, finite), max_size=5),
 )
 rem_patches = st.builds(
@@ -77,10 +76,11 @@ rem_patches = st.builds(
 )
 packets = st.one_of(
     snapshots,
-    frames,
+    key_frames,
+    delta_frames,
     rem_patches,
     st.builds(KeyframeRequest, uint32),
-    st.builds(Heartbeat, uint32, int64),
+    st.builds(Heartbeat, uint32, uint32, int64),
     st.builds(ReceiverStats, st.dictionaries(names, finite, max_size=8)),
     st.builds(Bye, uint32),
     st.just(SnapshotRequest()),
@@ -96,26 +96,25 @@ def test_round_trip(packet: object) -> None:
     assert type(decoded).parse(data) == packet
 
 
-@given(frames)
-def test_frame_arrays_are_int16_read_only(frame: Frame) -> None:
-    decoded = decode(bytes(frame))
-    assert isinstance(decoded, Frame)
-    assert decoded.params.dtype == np.int16 and not decoded.params.flags.writeable
-    assert decoded.pose.shape == (8,)
+def test_equality_sees_field_contents() -> None:
+    a = KeyFrame(1, 7, 100, 5, b"\x01\x02")
+    assert a == KeyFrame(1, 7, 100, 5, b"\x01\x02")
+    assert a != KeyFrame(1, 7, 100, 5, b"\x01\x03")
+    assert a != DeltaFrame(1, b"\x01\x02")
+    assert a != Heartbeat(7, 1, 2)
 
 
-def test_equality_sees_array_contents_and_dtype() -> None:
-    a = Frame(1, 2, False, np.zeros(8, np.int16), np.array([1, 2], np.int16))
-    assert a == Frame(1, 2, False, np.zeros(8, np.int16), np.array([1, 2], np.int16))
-    assert a != Frame(1, 2, False, np.zeros(8, np.int16), np.array([1, 3], np.int16))
-    assert a != Frame(1, 2, False, np.zeros(8, np.int16), np.array([1, 2, 0], np.int16))
-    assert a != Heartbeat(1, 2)
+def test_frame_packets_are_small() -> None:
+    # Header byte + counter + body: a delta frame is its body plus two bytes.
+    assert bytes(DeltaFrame(5, b"\xab\xcd")) == b"\x29\x05\xab\xcd"
+    # A keyframe adds seq, session and capture time: 1 + 1 + 4 + 4 + 8 bytes.
+    assert len(bytes(KeyFrame(5, 7, 100, 2**40, b""))) == 18
 
 
-def test_frame_size_is_small() -> None:
-    frame = Frame(7, 1000, True, np.zeros(8, np.int16), np.zeros(20, np.int16))
-    # [1, 2, 7, 1000, true, bin8(16), bin8(40), {}]: 1+1+1+1+3+1+18+42+1 bytes
-    assert len(bytes(frame)) == 69
+def test_every_packet_starts_with_version_and_kind() -> None:
+    for packet in (KeyFrame(0, 1, 2, 3, b""), DeltaFrame(0, b""), Bye(1), SnapshotRequest()):
+        data = bytes(packet)
+        assert data[0] >> 4 == 2 and data[0] & 0x0F == packet.KIND
 
 
 # --- captured fixtures ---------------------------------------------------------------------------
@@ -130,22 +129,18 @@ EXAMPLES = {
         vertices=np.array([[0.0, 1.5, -2.0], [3.25, 0.0, 1.0]], np.float32),
         texture=JPEG,
         background=PNG,
-        quant={"pose.scale": 1e-4, "pose.translation": 0.01, "wire": 0.001},
-        wire_layout=[("brow_l", 6), ("lip_upper", 8)],
-        rig_version=3,
+        channels=[("pose.rotation", 3, 0.002), ("pose.scale", 1, 0.002), ("wire", 16, 0.05)],
+        rig_hash="0123456789abcdef" * 4,
+        keyframe_interval=120,
         meta={"mesh": "canonical", "subdivision": 1, "focal_px": 600.5},
     ),
-    "frame": Frame(
-        seq=101,
-        capture_us=1_700_000_123_456,
-        key=True,
-        pose=np.array([0, 0, 0, 32767, -12, 100, -200, 3000], np.int16),
-        params=np.array([1, -1, 300, -32767, 32767], np.int16),
-        channels={"gde": np.array([5, -5], np.int16), "mouth": np.array([], np.int16)},
+    "key_frame": KeyFrame(
+        counter=3, session_id=42, seq=101, capture_us=1_700_000_123_456, body=b"\x81\x7f\x10"
     ),
+    "delta_frame": DeltaFrame(counter=4, body=b"\x12\x34"),
     "rem_patch": RemPatch(101, "eyes", "jpeg", JPEG, 12.5, 0.25, 0.75),
     "keyframe_request": KeyframeRequest(99),
-    "heartbeat": Heartbeat(101, 1_700_000_999_000),
+    "heartbeat": Heartbeat(42, 101, 1_700_000_999_000),
     "receiver_stats": ReceiverStats({"fps": 29.97, "latency_ms_p50": 31.0}),
     "bye": Bye(250),
     "snapshot_request": SnapshotRequest(),
@@ -162,67 +157,60 @@ def test_fixture_bytes(name: str) -> None:
 
 
 def test_fixture_fields() -> None:
-    frame = Frame.parse((FIXTURES / "frame.bin").read_bytes())
-    assert (frame.seq, frame.capture_us, frame.key) == (101, 1_700_000_123_456, True)
-    assert frame.pose.tolist() == [0, 0, 0, 32767, -12, 100, -200, 3000]
-    assert frame.params.tolist() == [1, -1, 300, -32767, 32767]
-    assert list(frame.channels) == ["gde", "mouth"]
+    key = KeyFrame.parse((FIXTURES / "key_frame.bin").read_bytes())
+    assert (key.counter, key.session_id, key.seq, key.capture_us) == (3, 42, 101, 1_700_000_123_456)
+    assert key.body == b"\x81\x7f\x10"
     snap = Snapshot.parse((FIXTURES / "snapshot.bin").read_bytes())
     assert snap.vertices.dtype == np.float32 and snap.vertices.shape == (2, 3)
     assert snap.vertices[1].tolist() == [3.25, 0.0, 1.0]
-    assert snap.wire_layout == (("brow_l", 6), ("lip_upper", 8))
+    assert snap.channels[2] == ("wire", 16, 0.05)
     assert snap.texture == JPEG and snap.background == PNG
 
 
 # --- errors ---------------------------------------------------------------------------------------
 
-FRAME = (FIXTURES / "frame.bin").read_bytes() if (FIXTURES / "frame.bin").exists() else b""
+KEY = (FIXTURES / "key_frame.bin").read_bytes()
+SNAPSHOT = (FIXTURES / "snapshot.bin").read_bytes()
 
 
-def pack(*items: object) -> bytes:
+def pack(kind: int, *items: object) -> bytes:
     data: bytes = msgpack.packb(list(items), use_bin_type=True)
-    return data
+    return bytes([0x20 | kind]) + data
+
+
+V1_HEARTBEAT = msgpack.packb([1, 5, 1, 2])
 
 
 @pytest.mark.parametrize(
     ("data", "message"),
     [
         (b"", "empty packet"),
-        (FRAME[:-5], f"truncated packet ({len(FRAME) - 5} bytes)"),
-        (FRAME + b"\x00", "1 trailing bytes after the packet"),
-        (b"\xc1", "malformed msgpack: invalid type byte"),
-        (b"\x91" * 5000, "malformed msgpack: nesting too deep"),
-        (b"garbage!", "7 trailing bytes after the packet"),
-        (b"\x07", "packet must be a msgpack array, got int"),
-        (msgpack.packb({"v": 1}), "packet must be a msgpack array, got map"),
-        (pack(1), "packet header needs [version, kind], got 1 element(s)"),
-        (pack(2, 5, 1, 2), "unsupported protocol version 2 (this peer speaks 1)"),
-        (pack("1", 5, 1, 2), "protocol version must be an int, got str"),
-        (pack(1, 99), "unknown packet kind 99"),
-        (pack(1, "frame"), "unknown packet kind 'frame'"),
-        (pack(1, 5, 1), "Heartbeat needs 2 fields, got 1"),
-        (pack(1, 5, -1, 0), "Heartbeat.seq: -1 outside [0, 4294967295]"),
-        (pack(1, 5, 2**32, 0), "Heartbeat.seq: 4294967296 outside [0, 4294967295]"),
-        (pack(1, 5, 1.0, 0), "Heartbeat.seq: expected int, got float"),
-        (pack(1, 5, True, 0), "Heartbeat.seq: expected int, got bool"),
-        (pack(1, 2, 1, 2, 1, bytes(16), b"", {}), "Frame.key: expected bool, got int"),
-        (pack(1, 2, 1, 2, True, bytes(14), b"", {}), "Frame.pose: expected shape (8,), got (7,)"),
-        (pack(1, 2, 1, 2, True, bytes(16), b"\x00", {}), "Frame.params: odd length 1 for int16"),
-        (pack(1, 2, 1, 2, True, bytes(16), [1, 2], {}), "Frame.params: expected bin, got array"),
-        (pack(1, 2, 1, 2, True, bytes(16), b"", None), "Frame.channels: expected map, got nil"),
-        (
-            pack(1, 2, 1, 2, True, bytes(16), b"", {"": b""}),
-            "Frame.channels key: must not be empty",
-        ),
-        (b"\x93\x01\x06\x81\x01\x02", "malformed msgpack: int is not allowed for map key"),
-        (b"\x93\x01\x06\x82\xa1a\x01\xa1a\x02", "duplicate map key 'a'"),
-        (pack(1, 6, {"fps": float("nan")}), "ReceiverStats.values['fps']: expected a finite"),
-        (pack(1, 6, {"fps": "30"}), "ReceiverStats.values['fps']: expected float, got str"),
-        (pack(1, 3, 1, "eyes", "h264", JPEG, 1.0, 0.5, 0.5), "RemPatch.codec: unknown codec"),
-        (pack(1, 3, 1, "eyes", "jpeg", PNG, 1.0, 0.5, 0.5), "RemPatch.data: not a jpeg image"),
-        (pack(1, 3, 1, "eyes", "jpeg", JPEG, 1.0, 1.5, 0.5), "RemPatch.s_mean: 1.5 outside"),
-        (b"\x93\x01\x05\xd4\x01\x02", "malformed msgpack: 2 exceeds max_ext_len(0)"),
-        (b"\x94\x01\x05\x01\xa2\xff\xfe", "malformed msgpack: 'utf-8' codec can't decode"),
+        (V1_HEARTBEAT, "unsupported protocol version 1 (this peer speaks 2)"),
+        (b"\x35\x90", "unsupported protocol version 3 (header byte 0x35; this peer speaks 2)"),
+        (b"\x20", "unknown packet kind 0"),
+        (b"\x2f", "unknown packet kind 15"),
+        (KEY[:10], "truncated KeyFrame: 10 bytes, needs at least 18"),
+        (b"\x29", "truncated DeltaFrame: 1 byte, needs at least 2"),
+        (SNAPSHOT[:-5], f"truncated packet ({len(SNAPSHOT) - 5} bytes)"),
+        (SNAPSHOT + b"\x00", "1 trailing bytes after the packet"),
+        (b"\x25\xc1", "malformed msgpack: invalid type byte"),
+        (b"\x25" + b"\x91" * 5000, "malformed msgpack: nesting too deep"),
+        (b"\x25\x07", "Heartbeat: expected a msgpack array, got int"),
+        (pack(5, 1), "Heartbeat needs 3 fields, got 1"),
+        (pack(5, 1, -1, 0), "Heartbeat.seq: -1 outside [0, 4294967295]"),
+        (pack(5, 1, 2**32, 0), "Heartbeat.seq: 4294967296 outside [0, 4294967295]"),
+        (pack(5, 1, 1.0, 0), "Heartbeat.seq: expected int, got float"),
+        (pack(5, 1, True, 0), "Heartbeat.seq: expected int, got bool"),
+        (pack(5, 2**32, 1, 0), "Heartbeat.session_id: 4294967296 outside [0, 4294967295]"),
+        (b"\x26\x91\x81\x01\x02", "malformed msgpack: int is not allowed for map key"),
+        (b"\x26\x91\x82\xa1a\x01\xa1a\x02", "duplicate map key 'a'"),
+        (pack(6, {"fps": float("nan")}), "ReceiverStats.values['fps']: expected a finite"),
+        (pack(6, {"fps": "30"}), "ReceiverStats.values['fps']: expected float, got str"),
+        (pack(3, 1, "eyes", "h264", JPEG, 1.0, 0.5, 0.5), "RemPatch.codec: unknown codec"),
+        (pack(3, 1, "eyes", "jpeg", PNG, 1.0, 0.5, 0.5), "RemPatch.data: not a jpeg image"),
+        (pack(3, 1, "eyes", "jpeg", JPEG, 1.0, 1.5, 0.5), "RemPatch.s_mean: 1.5 outside"),
+        (b"\x25\x93\x01\x05\xd4\x01\x02", "malformed msgpack: 2 exceeds max_ext_len(0)"),
+        (b"\x25\x94\x01\x05\x01\xa2\xff\xfe", "malformed msgpack: 'utf-8' codec can't decode"),
     ],
 )
 def test_error_messages(data: bytes, message: str) -> None:
@@ -242,13 +230,13 @@ def snapshot_fields(**changes: object) -> bytes:
         "vertices": bytes(12),
         "texture": b"",
         "background": b"",
-        "quant": {},
-        "wire_layout": [],
-        "rig_version": 0,
+        "channels": [["wire", 4, 0.1]],
+        "rig_hash": "ab" * 32,
+        "keyframe_interval": 60,
         "meta": {},
     }
     fields.update(changes)
-    return pack(1, 1, *fields.values())
+    return pack(1, *fields.values())
 
 
 @pytest.mark.parametrize(
@@ -258,11 +246,16 @@ def snapshot_fields(**changes: object) -> bytes:
         ({"n": 0, "vertices": b""}, "Snapshot.n_vertices: 0 outside [1, 200000]"),
         ({"fps": 0.0}, "Snapshot.fps: must be > 0, got 0.0"),
         ({"fps": 30}, None),  # ints are accepted where floats are expected
-        ({"width": 0}, "Snapshot.width: 0 outside [1, 16384]"),
+        ({"width": 0}, "Snapshot.width: 0 outside [1, 4096]"),
+        ({"height": 16384}, "Snapshot.height: 16384 outside [1, 4096]"),
         ({"texture": b"GIF89a"}, "Snapshot.texture: neither JPEG nor PNG (starts with"),
-        ({"quant": {"wire": -0.1}}, "Snapshot.quant['wire']: must be > 0.0, got -0.1"),
-        ({"wire_layout": [["brow", 0]]}, "Snapshot.wire_layout[0] n_ctrl: 0 outside [1, 1024]"),
-        ({"wire_layout": [["brow"]]}, "Snapshot.wire_layout[0]: expected [name, n_ctrl]"),
+        ({"channels": [["wire", 4, -0.1]]}, "Snapshot.channels[0] step: must be > 0, got -0.1"),
+        ({"channels": [["wire", 0, 0.1]]}, "Snapshot.channels[0] size: 0 outside [1, 8192]"),
+        ({"channels": [["wire", 4]]}, "Snapshot.channels[0]: expected [name, size, step]"),
+        ({"channels": []}, "Snapshot.channels: 0 channels outside [1, 32]"),
+        ({"channels": [["a", 1, 1.0], ["a", 1, 1.0]]}, "Snapshot.channels: duplicate channel"),
+        ({"rig_hash": "AB" * 32}, "Snapshot.rig_hash: expected 64 lowercase hex digits"),
+        ({"keyframe_interval": 0}, "Snapshot.keyframe_interval: 0 outside [1, 65535]"),
         ({"meta": {"x": [1]}}, "Snapshot.meta['x']: expected str, int or float, got array"),
         ({"meta": {"x": True}}, "Snapshot.meta['x']: expected str, int or float, got bool"),
         ({"vertices": bytes(8) + b"\x00\x00\xc0\x7f"}, "Snapshot.vertices: non-finite"),
@@ -292,8 +285,8 @@ def test_oversized() -> None:
 
 def test_parse_checks_the_kind() -> None:
     with pytest.raises(PacketError) as info:
-        Frame.parse(bytes(Heartbeat(1, 2)))
-    assert str(info.value) == "expected Frame packet, got Heartbeat"
+        KeyFrame.parse(bytes(Heartbeat(1, 1, 2)))
+    assert str(info.value) == "expected KeyFrame packet, got Heartbeat"
 
 
 def test_not_bytes() -> None:
@@ -303,21 +296,16 @@ def test_not_bytes() -> None:
 
 def test_constructors_validate_like_the_decoder() -> None:
     with pytest.raises(PacketError) as info:
-        Frame(1, 2, True, np.zeros(8, np.int16), np.zeros(3, np.int64))
-    assert (
-        str(info.value) == "Frame.params: expected 1-D int16 array, got int64 array of shape (3,)"
-    )
+        DeltaFrame(256, b"")
+    assert str(info.value) == "DeltaFrame.counter: 256 outside [0, 255]"
     with pytest.raises(PacketError) as info:
-        Snapshot(1, 0, 640, 480, 30.0, np.zeros((4, 2)), b"", b"", {}, [], 0)
+        Snapshot(1, 0, 640, 480, 30.0, np.zeros((4, 2)), b"", b"", [], "ab" * 32, 1)
     assert str(info.value) == "Snapshot.vertices: expected (n, 3) float array, got shape (4, 2)"
+    with pytest.raises(PacketError, match="DeltaFrame.body: 20000 bytes exceeds 16384"):
+        DeltaFrame(0, bytes(20000))
 
 
-def test_packets_are_frozen_and_copy_their_arrays() -> None:
-    params = np.array([1, 2], np.int16)
-    frame = Frame(1, 2, True, np.zeros(8, np.int16), params)
-    params[0] = 9
-    assert frame.params.tolist() == [1, 2]
-    with pytest.raises(ValueError, match="read-only"):
-        frame.params[0] = 5
+def test_packets_are_frozen() -> None:
+    frame = KeyFrame(1, 2, 3, 4, b"")
     with pytest.raises(AttributeError):
         frame.seq = 3  # type: ignore[misc]
