@@ -122,9 +122,9 @@ def _call(video: VideoSource, args: argparse.Namespace, sent: Path | None) -> di
             frames_in = 0
             keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
             for frame in itertools.chain(buffered, frames):
-                for packet in endpoint.poll(0):
-                    logger.debug("back channel: %r", packet)
-                    if isinstance(packet, KeyframeRequest):
+                for request in endpoint.poll(0):
+                    logger.debug("back channel: %r", request)
+                    if isinstance(request, KeyframeRequest):
                         encoder.request_keyframe()
                 start = time.perf_counter()
                 packet = encoder.encode(frame)

@@ -54,6 +54,7 @@ from protocol.constants import (
 
 logger = logging.getLogger(__name__)
 
+
 class PacketError(ValueError):
     """A packet is malformed, truncated, oversized, of unknown kind or of the wrong version."""
 
@@ -334,7 +335,11 @@ def _channel_table(name: str, value: object) -> tuple[tuple[str, int, float], ..
         if step <= 0:
             raise PacketError(f"{name}[{i}] step: must be > 0, got {step}")
         table.append(
-            (_str(f"{name}[{i}] name", entry[0]), _int(f"{name}[{i}] size", entry[1], 1, MAX_PARAMS), step)
+            (
+                _str(f"{name}[{i}] name", entry[0]),
+                _int(f"{name}[{i}] size", entry[1], 1, MAX_PARAMS),
+                step,
+            )
         )
     names = [t[0] for t in table]
     if len(set(names)) != len(names):
@@ -381,7 +386,8 @@ class KeyFrame(_Packet):
             raise PacketError(
                 f"truncated KeyFrame: {len(body) + 1} bytes, needs at least {_KEY_HEAD.size + 1}"
             )
-        return cls(*_KEY_HEAD.unpack_from(body), body[_KEY_HEAD.size :])
+        counter, session_id, seq, capture_us = _KEY_HEAD.unpack_from(body)
+        return cls(counter, session_id, seq, capture_us, body[_KEY_HEAD.size :])
 
 
 @dataclass(frozen=True, eq=False)

@@ -29,6 +29,7 @@ from models.pose import Pose
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
+from protocol.images import ImageError, decode_image
 from protocol.packets import DeltaFrame, KeyFrame, Snapshot
 from protocol.quant import dequantise
 
@@ -39,11 +40,21 @@ class SnapshotError(ValueError):
     """A snapshot this receiver cannot use (other rig, undecodable images, bad sizes)."""
 
 
-def _image(data: bytes, what: str) -> np.ndarray:
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if image is None:
-        raise SnapshotError(f"snapshot {what} is not a decodable image")
-    return image
+#: Shown where a snapshot carries no texture or background (the format allows empty images).
+MISSING_IMAGE_GREY = 128
+MISSING_TEXTURE_SIZE = 64
+
+
+def _image(data: bytes, what: str, fallback_size: tuple[int, int]) -> np.ndarray:
+    """Decode a snapshot image after checking its header (size limits before any pixel is
+    decoded); an empty image becomes flat grey of ``fallback_size`` (height, width)."""
+    if not data:
+        logger.warning("snapshot has no %s: showing grey", what)
+        return np.full((*fallback_size, 3), MISSING_IMAGE_GREY, np.uint8)
+    try:
+        return decode_image(data, f"snapshot {what}")
+    except ImageError as exc:
+        raise SnapshotError(str(exc)) from None
 
 
 class FaceDecoder:
@@ -74,8 +85,12 @@ class FaceDecoder:
         self.mesh = canonical.with_vertices(vertices)
         self.wires = WireDeformer.from_rig(vertices, self.rig)
         self._rest = self.wires.rest_params()
-        self.texture = _image(snapshot.texture, "texture")
-        self.background = _image(snapshot.background, "background")
+        self.texture = _image(
+            snapshot.texture, "texture", (MISSING_TEXTURE_SIZE, MISSING_TEXTURE_SIZE)
+        )
+        self.background = _image(
+            snapshot.background, "background", (snapshot.height, snapshot.width)
+        )
         if self.background.shape[:2] != (snapshot.height, snapshot.width):
             self.background = cv2.resize(self.background, (snapshot.width, snapshot.height))
         from receiver.render import FaceRenderer  # OpenGL only where it is needed

@@ -93,3 +93,31 @@ def test_decoder_refuses_a_snapshot_of_another_rig(clip) -> None:
     other = dataclasses.replace(snapshot, rig_hash="0" * 64)
     with pytest.raises(SnapshotError, match="differs from this receiver's"):
         FaceDecoder(other)
+
+
+def test_decoder_survives_empty_and_refuses_huge_images(clip) -> None:
+    import dataclasses
+    import struct
+    import zlib
+
+    from sender.encoder import FaceEncoder
+
+    frames, truth = clip
+    encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
+    snapshot = encoder.start(frames[0])
+    assert snapshot is not None
+    # Empty images are allowed by the format: the receiver shows grey instead of crashing.
+    empty = dataclasses.replace(snapshot, texture=b"", background=b"")
+    decoder = FaceDecoder(empty)
+    try:
+        assert decoder.background.shape == (snapshot.height, snapshot.width, 3)
+    finally:
+        decoder.close()
+    # A tiny PNG whose header claims 16384 x 16384 is refused before any pixel is decoded.
+    ihdr = struct.pack(">IIBBBBB", 16384, 16384, 8, 2, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    png = (
+        b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk + struct.pack(">I", zlib.crc32(chunk))
+    )
+    with pytest.raises(SnapshotError, match="16384"):
+        FaceDecoder(dataclasses.replace(snapshot, texture=png))

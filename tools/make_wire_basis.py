@@ -21,9 +21,9 @@ import numpy as np
 
 from models.face_channels import WireBasis
 from models.mesh import data_path, load_canonical
+from models.pose import estimate_pose
 from models.rig import load_rig
 from models.wires import WireDeformer
-from models.pose import estimate_pose
 from sender.capture import VideoSource, demo_clip_path
 from sender.landmarks import LandmarkTracker
 
