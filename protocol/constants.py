@@ -91,3 +91,22 @@ PEER_TIMEOUT_S: Final = 3.0
 PROBE_INTERVAL_MS: Final = 100
 #: Send and receive high-water marks, in messages, for every socket (about 5 min at 30 fps).
 HWM: Final = 10_000
+
+# --- transport v2: bounded queues, rate limits, CURVE (protocol/transport.py) -------------------
+# (HWM above is v1's and no longer used by the transport.)
+
+#: PUB send and SUB receive high-water marks, in messages (about 2 s at 30 fps). Past it libzmq
+#: drops what the sender publishes to that receiver; the receiver sees a seq gap.
+UPDATE_HWM: Final = 64
+#: Back channel (DEALER send, ROUTER receive) high-water marks: a flooding peer is slowed down.
+BACK_CHANNEL_HWM: Final = 64
+#: Snapshot replies queued per peer on the ROUTER (up to MAX_PACKET_BYTES each); more are dropped.
+SNAPSHOT_HWM: Final = 2
+#: A peer (one ROUTER identity) is sent at most one snapshot per this many seconds.
+SNAPSHOT_MIN_INTERVAL_S: Final = 0.5
+#: Most peers the snapshot rate limit remembers, and most requests waiting for a first snapshot.
+MAX_SNAPSHOT_PEERS: Final = 256
+#: A joining receiver repeats its SnapshotRequest this often until the snapshot arrives.
+SNAPSHOT_RETRY_MS: Final = 1000
+#: ZAP domain of the sender's CURVE sockets (each endpoint appends its own suffix).
+ZAP_DOMAIN: Final = "facewire"

@@ -1,43 +1,71 @@
-"""ZeroMQ transport: the ZeroMQ Guide's "Clone" pattern with a back channel.
+"""ZeroMQ transport: the ZeroMQ Guide's "Clone" pattern with a back channel, over CURVE.
 
-The sender binds a PUB socket (updates: Frame, RemPatch, Heartbeat, Bye, and optionally a new
+The sender binds a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, and a new
 Snapshot) and a ROUTER socket (snapshot requests and the back channel: KeyframeRequest,
 ReceiverStats, probes). A receiver connects a SUB and a DEALER socket.
 
+Security: by default every socket uses CURVE. The sender's PUB and ROUTER are CURVE servers with
+the sender's secret key, and a ZAP handler admits only the clients whose public keys it was
+given (``allowed_keys``); the receiver's SUB and DEALER are CURVE clients that know the sender's
+public key, so an impostor that binds the sender's ports cannot complete a handshake with them.
+Unencrypted sockets must be asked for with ``plain=True``. Key files: :mod:`protocol.keys`.
+
 Handshake (docs/protocol.md, "Joining"): the receiver subscribes first, then proves that its
 subscription is live before it asks for the snapshot: it sends a Heartbeat probe over DEALER
-every 100 ms, the sender answers each probe by publishing a Heartbeat, and as soon as the SUB
-socket has anything to read (a Heartbeat or a Frame) the subscription is live. Only then does
-the receiver send SnapshotRequest, so when the sender answers it, every packet it publishes
-afterwards reaches that receiver. :meth:`SenderEndpoint.wait_for_receiver` waits for that
-answer. Updates queued on SUB before the snapshot arrived stay queued; :meth:`recv` drops those
-older than the snapshot's seq.
+every 100 ms, the sender answers probes by publishing a Heartbeat (at most one per 100 ms in
+total, however many probes come), and as soon as the SUB socket has anything to read the
+subscription is live. Only then does the receiver send SnapshotRequest (repeated every second
+until answered), so when the sender answers it, every packet it publishes afterwards reaches
+that receiver. :meth:`SenderEndpoint.wait_for_receiver` waits for that answer. Updates queued on
+SUB before the snapshot arrived stay queued; :meth:`ReceiverEndpoint.recv` drops those older
+than the snapshot's seq.
+
+Bounded memory: every queue is small (constants ``UPDATE_HWM``, ``BACK_CHANNEL_HWM``,
+``SNAPSHOT_HWM``). A receiver that stops reading makes libzmq drop what the sender publishes to
+it, so the sender's memory stays flat; it sees a gap in seq. Each peer is sent at most one
+snapshot per ``SNAPSHOT_MIN_INTERVAL_S``, and replies it has not read are dropped, not queued.
+
+Rejoining: when the receiver's SUB connection drops and comes back (the sender restarted, or the
+network failed), or an update names another session (``session_id``), :meth:`recv` raises
+:class:`RejoinNeeded` until :meth:`ReceiverEndpoint.fetch_snapshot` is called again.
 
 This is the only module that imports zmq.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
+import os
+import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Self
 
 import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from protocol.constants import (
+    BACK_CHANNEL_HWM,
     CHANNEL_CONTROL,
     CHANNEL_SNAPSHOT,
     CHANNELS,
     HEARTBEAT_INTERVAL_S,
-    HWM,
     MAX_PACKET_BYTES,
+    MAX_SNAPSHOT_PEERS,
     PEER_TIMEOUT_S,
     PROBE_INTERVAL_MS,
+    SNAPSHOT_HWM,
+    SNAPSHOT_MIN_INTERVAL_S,
+    SNAPSHOT_RETRY_MS,
+    UPDATE_HWM,
+    ZAP_DOMAIN,
 )
+from protocol.keys import KeyPair, load_keypair, load_public_key, load_public_keys
 from protocol.packets import (
     Bye,
     DeltaFrame,
@@ -55,14 +83,29 @@ from protocol.packets import (
 
 logger = logging.getLogger(__name__)
 
+KeyFile = str | os.PathLike[str]
+
+#: Updates with a seq, dropped by the receiver when older than the snapshot's seq. (A DeltaFrame
+#: has no seq: it is passed on, and the decoder ignores deltas until its chain starts.)
+SEQ_KINDS = (KeyFrame, RemPatch)
 #: Packets that travel on the PUB/SUB update channel.
 UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot)
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
 _MAX_DRAIN = 1000
+_HANDSHAKE_FAILED = (
+    zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+    | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+)
+_zap_suffix = itertools.count(1)
 
 
 class TransportError(RuntimeError):
     """A transport-level failure: timeout during the handshake, misuse, closed endpoint."""
+
+
+class RejoinNeeded(TransportError):
+    """The update stream no longer belongs to the snapshot: call fetch_snapshot() again."""
 
 
 @dataclass
@@ -74,11 +117,13 @@ class TransportStats:
     dropped_old: int = 0  # updates older than the snapshot's seq, dropped
 
 
-def _socket(context: zmq.Context[zmq.Socket[bytes]], kind: int) -> zmq.Socket[bytes]:
+def _socket(
+    context: zmq.Context[zmq.Socket[bytes]], kind: int, sndhwm: int, rcvhwm: int
+) -> zmq.Socket[bytes]:
     sock = context.socket(kind)
     sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.SNDHWM, HWM)
-    sock.setsockopt(zmq.RCVHWM, HWM)
+    sock.setsockopt(zmq.SNDHWM, sndhwm)
+    sock.setsockopt(zmq.RCVHWM, rcvhwm)
     # A peer that sends a message beyond the limit is disconnected by libzmq.
     sock.setsockopt(zmq.MAXMSGSIZE, MAX_PACKET_BYTES)
     sock.setsockopt(zmq.RECONNECT_IVL, 100)
@@ -95,6 +140,67 @@ def _bind(sock: zmq.Socket[bytes], host: str, port: int) -> int:
 
 def _ms(seconds: float) -> int:
     return max(0, int(seconds * 1000))
+
+
+class _Zap:
+    """The ZAP handler of one context (libzmq allows one), shared by its CURVE senders.
+
+    Each sender registers its own ZAP domain with the public keys it admits.
+    """
+
+    _lock = threading.Lock()
+    _by_context: dict[int, _Zap] = {}
+
+    def __init__(self, context: zmq.Context[zmq.Socket[bytes]]) -> None:
+        from zmq.auth.thread import ThreadAuthenticator
+
+        self.allowed: dict[str, frozenset[bytes]] = {}
+        self._auth = ThreadAuthenticator(context, log=logging.getLogger(f"{__name__}.zap"))
+        try:
+            self._auth.start()
+        except zmq.ZMQError as exc:
+            if self._auth.zap_socket is not None:
+                self._auth.zap_socket.close(linger=0)
+            raise TransportError(f"cannot start the ZAP handler: {exc}") from exc
+
+    def callback(self, domain: str, key: bytes) -> bool:
+        """ZAP: may the client with this public key (Z85) connect to ``domain``?"""
+        allowed = key in self.allowed.get(domain, frozenset())
+        if not allowed:
+            logger.info("refused a CURVE client with key %s (not allowed)", key.decode())
+        return allowed
+
+    @classmethod
+    def register(
+        cls, context: zmq.Context[zmq.Socket[bytes]], domain: str, keys: frozenset[bytes]
+    ) -> None:
+        with cls._lock:
+            zap = cls._by_context.get(id(context))
+            if zap is None:
+                zap = cls._by_context[id(context)] = _Zap(context)
+            zap.allowed[domain] = keys
+            zap._auth.configure_curve_callback(domain, credentials_provider=zap)
+
+    @classmethod
+    def unregister(cls, context: zmq.Context[zmq.Socket[bytes]], domain: str) -> None:
+        with cls._lock:
+            zap = cls._by_context.get(id(context))
+            if zap is None:
+                return
+            zap.allowed.pop(domain, None)
+            zap._auth.credentials_providers.pop(domain, None)
+            if not zap.allowed:
+                zap._auth.stop()
+                del cls._by_context[id(context)]
+
+
+def _check_mode(plain: bool, has_keys: bool, side: str, names: str) -> None:
+    if plain and has_keys:
+        raise TransportError(f"{side}: plain=True and key files exclude each other")
+    if not plain and not has_keys:
+        raise TransportError(
+            f"{side}: no CURVE keys ({names}); pass keys or plain=True for an unencrypted call"
+        )
 
 
 class _Endpoint:
@@ -119,11 +225,6 @@ class _Endpoint:
         """The endpoint's clock in integer microseconds (``sent_us`` of heartbeats)."""
         return round(self._clock() * 1_000_000)
 
-    def _session_id(self) -> int:
-        """The session this endpoint serves or joined (0 before a snapshot)."""
-        snapshot = getattr(self, "snapshot", None) or getattr(self, "_snapshot", None)
-        return snapshot.session_id if snapshot is not None else 0
-
     def _check_open(self) -> None:
         if self._closed:
             raise TransportError(f"{type(self).__name__} is closed")
@@ -131,6 +232,9 @@ class _Endpoint:
     def _drop(self, data: bytes, reason: str) -> None:
         self.stats.malformed += 1
         logger.debug("dropped %d-byte message: %s", len(data), reason)
+
+    def _release(self) -> None:
+        """Free what the subclass holds besides its sockets (before the context ends)."""
 
     @property
     def closed(self) -> bool:
@@ -143,6 +247,7 @@ class _Endpoint:
         self._closed = True
         for sock in self._sockets:
             sock.close(linger=0)
+        self._release()
         if self._own_context:
             self._context.term()
 
@@ -164,6 +269,10 @@ class SenderEndpoint(_Endpoint):
     ``pub_port`` / ``snapshot_port`` 0 pick free ports; :attr:`ports` tells which.
     ``clock`` (seconds, monotonic) times heartbeats and gives ``Heartbeat.sent_us``; the
     default ``time.monotonic`` is CLOCK_MONOTONIC, shared by all processes of one Linux host.
+
+    ``secret_key_file`` is the sender's ``.key_secret`` file; ``allowed_keys`` is a directory
+    of the receivers' public ``.key`` files, or a list of such files. Without them, pass
+    ``plain=True`` for unencrypted, unauthenticated sockets.
     """
 
     def __init__(
@@ -173,12 +282,36 @@ class SenderEndpoint(_Endpoint):
         snapshot_port: int = 0,
         context: zmq.Context[zmq.Socket[bytes]] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        *,
+        secret_key_file: KeyFile | None = None,
+        allowed_keys: KeyFile | Iterable[KeyFile] | None = None,
+        plain: bool = False,
     ) -> None:
+        has_keys = secret_key_file is not None or allowed_keys is not None
+        _check_mode(plain, has_keys, "sender", "secret_key_file, allowed_keys")
+        keys: KeyPair | None = None
+        allowed: frozenset[bytes] = frozenset()
+        if not plain:
+            if secret_key_file is None or allowed_keys is None:
+                raise TransportError("sender: CURVE needs both secret_key_file and allowed_keys")
+            keys = load_keypair(secret_key_file)
+            allowed = load_public_keys(allowed_keys)
         super().__init__(context, clock)
-        self._pub = _socket(self._context, zmq.PUB)
-        self._router = _socket(self._context, zmq.ROUTER)
+        self._zap_domain = ""
+        self._pub = _socket(self._context, zmq.PUB, UPDATE_HWM, UPDATE_HWM)
+        self._router = _socket(self._context, zmq.ROUTER, SNAPSHOT_HWM, BACK_CHANNEL_HWM)
+        # Unread replies raise Again (counted and dropped) instead of vanishing silently.
+        self._router.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self._sockets = [self._pub, self._router]
         try:
+            if keys is not None:
+                self._zap_domain = f"{ZAP_DOMAIN}.{os.getpid()}.{next(_zap_suffix)}"
+                _Zap.register(self._context, self._zap_domain, allowed)
+                for sock in self._sockets:
+                    sock.setsockopt(zmq.CURVE_SERVER, 1)
+                    sock.setsockopt(zmq.CURVE_SECRETKEY, keys.secret)
+                    sock.setsockopt(zmq.CURVE_PUBLICKEY, keys.public)
+                    sock.setsockopt(zmq.ZAP_DOMAIN, self._zap_domain.encode())
             self._ports = (
                 _bind(self._pub, bind_host, pub_port),
                 _bind(self._router, bind_host, snapshot_port),
@@ -186,19 +319,34 @@ class SenderEndpoint(_Endpoint):
         except zmq.ZMQError as exc:
             self.close()
             raise TransportError(f"cannot bind on {bind_host}: {exc}") from exc
+        except BaseException:
+            self.close()
+            raise
         self._snapshot: Snapshot | None = None
         self._snapshot_bytes = b""
-        self._waiting: list[bytes] = []  # identities that asked before a snapshot was set
+        self._waiting: dict[bytes, None] = {}  # identities that asked before a snapshot was set
+        self._served_at: dict[bytes, float] = {}  # identity -> time.monotonic() of the last reply
         self._inbox: deque[Packet] = deque()
         self._last_publish = clock()
+        self._last_probe_answer = -math.inf
         self._last_seq = 0
         self.snapshots_served = 0
-        logger.info("sender: PUB and ROUTER on %s, ports %s", bind_host, self._ports)
+        #: Snapshot requests not answered: rate limit, too many peers, or replies left unread.
+        self.snapshots_refused = 0
+        #: Probes not answered because a Heartbeat was published for a probe less than
+        #: PROBE_INTERVAL_MS ago.
+        self.probes_unanswered = 0
+        mode = "plain" if plain else f"CURVE, {len(allowed)} allowed keys"
+        logger.info("sender: PUB and ROUTER on %s, ports %s (%s)", bind_host, self._ports, mode)
 
     @property
     def ports(self) -> tuple[int, int]:
         """(pub_port, snapshot_port) actually bound."""
         return self._ports
+
+    def _release(self) -> None:
+        if self._zap_domain:
+            _Zap.unregister(self._context, self._zap_domain)
 
     def set_snapshot(self, snapshot: Snapshot) -> None:
         """Make ``snapshot`` the one served to (re)joining receivers; answers waiting requests."""
@@ -207,9 +355,9 @@ class SenderEndpoint(_Endpoint):
             raise TypeError(f"expected Snapshot, got {type(snapshot).__name__}")
         self._snapshot = snapshot
         self._snapshot_bytes = bytes(snapshot)
-        waiting, self._waiting = self._waiting, []
+        waiting, self._waiting = self._waiting, {}
         for identity in waiting:
-            self._serve(identity)
+            self._serve(identity, time.monotonic())
 
     def publish(
         self, packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot
@@ -219,6 +367,10 @@ class SenderEndpoint(_Endpoint):
         if not isinstance(packet, UPDATE_KINDS):
             raise TypeError(f"{type(packet).__name__} is not an update packet")
         data = bytes(packet)
+        # Reading EVENTS makes libzmq take in its pending commands now (a plain send only does
+        # so about once a millisecond): it learns how far its queues were read, and does not
+        # drop a burst that the small UPDATE_HWM can hold.
+        self._pub.getsockopt(zmq.EVENTS)
         self._pub.send(data)
         self.bytes_sent[packet.CHANNEL] += len(data)
         self._last_publish = self._clock()
@@ -229,8 +381,12 @@ class SenderEndpoint(_Endpoint):
         """Publish a Heartbeat if nothing was published for HEARTBEAT_INTERVAL_S; True if sent."""
         if self._clock() - self._last_publish < HEARTBEAT_INTERVAL_S:
             return False
-        self.publish(Heartbeat(self._session_id(), self._last_seq, self.now_us()))
+        self.publish(self._heartbeat())
         return True
+
+    def _heartbeat(self) -> Heartbeat:
+        session = self._snapshot.session_id if self._snapshot is not None else 0
+        return Heartbeat(session, self._last_seq, self.now_us())
 
     def poll(self, timeout_ms: int = 0) -> list[Packet]:
         """Handle the back channel; return KeyframeRequest and ReceiverStats packets received.
@@ -285,13 +441,10 @@ class SenderEndpoint(_Endpoint):
             return
         if isinstance(packet, SnapshotRequest):
             self._accept(packet, data)
-            if self._snapshot is None:
-                self._waiting.append(identity)
-            else:
-                self._serve(identity)
+            self._request(identity)
         elif isinstance(packet, Heartbeat):
             self._accept(packet, data)
-            self.publish(Heartbeat(self._session_id(), self._last_seq, self.now_us()))
+            self._answer_probe()
         elif isinstance(packet, (KeyframeRequest, ReceiverStats)):
             self._accept(packet, data)
             self._inbox.append(packet)
@@ -302,8 +455,54 @@ class SenderEndpoint(_Endpoint):
         self.stats.received += 1
         self.bytes_received[packet.CHANNEL] += len(data)
 
-    def _serve(self, identity: bytes) -> None:
-        self._router.send_multipart([identity, self._snapshot_bytes])
+    def _answer_probe(self) -> None:
+        # One published Heartbeat answers every receiver probing within PROBE_INTERVAL_MS, so
+        # a flood of probes cannot multiply the published traffic.
+        now = time.monotonic()
+        if now - self._last_probe_answer < PROBE_INTERVAL_MS / 1000:
+            self.probes_unanswered += 1
+            return
+        self._last_probe_answer = now
+        self.publish(self._heartbeat())
+
+    def _request(self, identity: bytes) -> None:
+        now = time.monotonic()
+        if self._snapshot is None:
+            if identity in self._waiting or len(self._waiting) < MAX_SNAPSHOT_PEERS:
+                self._waiting[identity] = None
+            else:
+                self._refuse(identity, "too many requests waiting for a snapshot")
+            return
+        last = self._served_at.get(identity)
+        if last is not None and now - last < SNAPSHOT_MIN_INTERVAL_S:
+            self._refuse(identity, "asked again within the rate limit")
+            return
+        if len(self._served_at) >= MAX_SNAPSHOT_PEERS:
+            self._served_at = {
+                peer: t for peer, t in self._served_at.items() if now - t < SNAPSHOT_MIN_INTERVAL_S
+            }
+            if len(self._served_at) >= MAX_SNAPSHOT_PEERS:
+                self._refuse(identity, "too many peers asking")
+                return
+        self._serve(identity, now)
+
+    def _refuse(self, identity: bytes, reason: str) -> None:
+        self.snapshots_refused += 1
+        logger.debug("snapshot request from %s not answered: %s", identity.hex(), reason)
+
+    def _serve(self, identity: bytes, now: float) -> None:
+        try:
+            # Never blocks: a peer that left SNAPSHOT_HWM replies unread gets no more.
+            self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            self._refuse(identity, "earlier replies still unread")
+            return
+        except zmq.ZMQError as exc:
+            if exc.errno != zmq.EHOSTUNREACH:
+                raise
+            self._refuse(identity, "peer gone")
+            return
+        self._served_at[identity] = now
         self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
         self.snapshots_served += 1
         logger.info("served the snapshot (%d bytes)", len(self._snapshot_bytes))
@@ -312,7 +511,9 @@ class SenderEndpoint(_Endpoint):
 class ReceiverEndpoint(_Endpoint):
     """The receiver's side: subscribes, fetches the snapshot, receives updates.
 
-    ``clock`` (seconds, monotonic) times peer liveness.
+    ``clock`` (seconds, monotonic) times peer liveness. ``secret_key_file`` is the receiver's
+    own ``.key_secret`` file (its public key must be among the sender's allowed keys) and
+    ``server_key_file`` the sender's public ``.key`` file. Without them, pass ``plain=True``.
     """
 
     def __init__(
@@ -322,18 +523,50 @@ class ReceiverEndpoint(_Endpoint):
         snapshot_port: int,
         context: zmq.Context[zmq.Socket[bytes]] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        *,
+        secret_key_file: KeyFile | None = None,
+        server_key_file: KeyFile | None = None,
+        plain: bool = False,
     ) -> None:
+        has_keys = secret_key_file is not None or server_key_file is not None
+        _check_mode(plain, has_keys, "receiver", "secret_key_file, server_key_file")
+        keys: KeyPair | None = None
+        server_key = b""
+        if not plain:
+            if secret_key_file is None or server_key_file is None:
+                raise TransportError(
+                    "receiver: CURVE needs both secret_key_file and server_key_file"
+                )
+            keys = load_keypair(secret_key_file)
+            server_key = load_public_key(server_key_file)
         super().__init__(context, clock)
         self._pub_address = f"tcp://{host}:{pub_port}"
         self._snapshot_address = f"tcp://{host}:{snapshot_port}"
-        self._sub = _socket(self._context, zmq.SUB)
-        self._dealer = _socket(self._context, zmq.DEALER)
+        self._sub = _socket(self._context, zmq.SUB, UPDATE_HWM, UPDATE_HWM)
+        self._dealer = _socket(self._context, zmq.DEALER, BACK_CHANNEL_HWM, SNAPSHOT_HWM)
         self._sockets = [self._sub, self._dealer]
+        if keys is not None:
+            for sock in self._sockets:
+                sock.setsockopt(zmq.CURVE_SECRETKEY, keys.secret)
+                sock.setsockopt(zmq.CURVE_PUBLICKEY, keys.public)
+                sock.setsockopt(zmq.CURVE_SERVERKEY, server_key)
+        events = zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | _HANDSHAKE_FAILED
+        self._monitors = [sock.get_monitor_socket(events) for sock in self._sockets]
+        for monitor in self._monitors:
+            monitor.setsockopt(zmq.LINGER, 0)
+        self._sockets += self._monitors
+        self._poller = zmq.Poller()
+        self._poller.register(self._sub, zmq.POLLIN)
+        self._poller.register(self._monitors[0], zmq.POLLIN)
         # Subscribe first (Clone pattern), then connect the request socket.
         self._sub.setsockopt(zmq.SUBSCRIBE, b"")
         self._sub.connect(self._pub_address)
         self._dealer.connect(self._snapshot_address)
         self.snapshot: Snapshot | None = None
+        #: The last failed CURVE/ZMTP handshake with the sender, in words (None if none).
+        self.handshake_error: str | None = None
+        self._sub_dropped = False  # SUB lost its connection since the join began
+        self._rejoin_reason: str | None = None
         self._last_heard = clock()
         self._last_seq = 0
         self._bye = False
@@ -343,31 +576,53 @@ class ReceiverEndpoint(_Endpoint):
         """False after PEER_TIMEOUT_S without a well-formed packet, or after a Bye."""
         return not self._bye and self._clock() - self._last_heard < PEER_TIMEOUT_S
 
+    @property
+    def session_id(self) -> int | None:
+        """The session of the current snapshot (None before the first one)."""
+        return None if self.snapshot is None else self.snapshot.session_id
+
     def fetch_snapshot(self, timeout_ms: int = 5000) -> Snapshot:
         """Run the joining handshake and return the sender's Snapshot.
 
-        Raises TransportError if the sender does not answer within ``timeout_ms``.
+        Call it again to rejoin (after :class:`RejoinNeeded`, or when the peer is lost): the
+        updates still queued from the old stream are discarded first. Raises TransportError if
+        the sender does not answer within ``timeout_ms``.
         """
         self._check_open()
+        if self.snapshot is not None:
+            self._forget()
+        self._read_events()
+        self._sub_dropped = False
         deadline = time.monotonic() + timeout_ms / 1000
         # 1. Prove the subscription is live: probe until SUB has something to read.
         while not self._sub.poll(0, zmq.POLLIN):
             remaining = _ms(deadline - time.monotonic())
             if remaining <= 0:
+                self._read_events()
                 raise TransportError(
                     f"no published packet from {self._pub_address} within {timeout_ms} ms "
-                    "(is the sender running?)"
+                    f"(is the sender running?){self._handshake_hint()}"
                 )
-            self._send(Heartbeat(self._session_id(), self._last_seq, self.now_us()))
+            self._send(self._probe())
             self._sub.poll(min(PROBE_INTERVAL_MS, remaining), zmq.POLLIN)
-        # 2. Ask for the snapshot; updates keep queueing on SUB meanwhile.
-        self._send(SnapshotRequest())
+        # 2. Ask for the snapshot (again every SNAPSHOT_RETRY_MS, in case a request was lost
+        # or refused by the rate limit); updates keep queueing on SUB meanwhile.
+        next_request = 0.0
         while True:
-            remaining = _ms(deadline - time.monotonic())
-            if remaining <= 0 or not self._dealer.poll(remaining, zmq.POLLIN):
+            now = time.monotonic()
+            remaining = _ms(deadline - now)
+            if remaining <= 0:
+                self._read_events()
                 raise TransportError(
                     f"no snapshot from {self._snapshot_address} within {timeout_ms} ms"
+                    f"{self._handshake_hint()}"
                 )
+            if now >= next_request:
+                self._send(SnapshotRequest())
+                next_request = now + SNAPSHOT_RETRY_MS / 1000
+            wait = min(remaining, _ms(next_request - now) + 1)
+            if not self._dealer.poll(wait, zmq.POLLIN):
+                continue
             data = self._dealer.recv()
             try:
                 packet = decode(data)
@@ -384,22 +639,32 @@ class ReceiverEndpoint(_Endpoint):
     def recv(self, timeout_ms: int = 0) -> Packet | None:
         """The next update at or after the snapshot's seq, or None after ``timeout_ms``.
 
-        Returns Frame, RemPatch, Heartbeat, Bye or a new Snapshot. Malformed messages are
-        counted in ``stats.malformed`` and dropped; this never raises because of bad input.
+        Returns KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye or a new Snapshot. Malformed
+        messages are counted in ``stats.malformed`` and dropped; bad input never raises.
+        Raises :class:`RejoinNeeded` (until :meth:`fetch_snapshot` is called again) once the
+        SUB connection has dropped and come back, or an update names another session.
         """
         self._check_open()
         if self.snapshot is None:
             raise TransportError("call fetch_snapshot() before recv()")
         deadline = time.monotonic() + timeout_ms / 1000
-        while self._sub.poll(_ms(deadline - time.monotonic()), zmq.POLLIN):
+        while True:
+            # Events first: the handshake of a new connection is reported before any message
+            # that connection brings, so no update of a new session is taken for the old one.
+            self._read_events()
+            if self._rejoin_reason is not None:
+                raise RejoinNeeded(f"{self._rejoin_reason}; call fetch_snapshot() to rejoin")
             try:
                 frames = self._sub.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
+                remaining = _ms(deadline - time.monotonic())
+                if remaining <= 0:
+                    return None
+                self._poller.poll(remaining)
                 continue
             packet = self._update(frames)
             if packet is not None:
                 return packet
-        return None
 
     def request_keyframe(self, seq: int) -> None:
         """Ask the sender for a keyframe; ``seq`` is the last frame decoded."""
@@ -408,6 +673,9 @@ class ReceiverEndpoint(_Endpoint):
     def send_stats(self, values: Mapping[str, float]) -> None:
         """Send named statistics (finite floats) to the sender."""
         self._send(ReceiverStats(values))
+
+    def _probe(self) -> Heartbeat:
+        return Heartbeat(self.session_id or 0, self._last_seq, self.now_us())
 
     def _send(self, packet: Packet) -> None:
         self._check_open()
@@ -418,6 +686,41 @@ class ReceiverEndpoint(_Endpoint):
             logger.debug("back channel full, dropped %s", type(packet).__name__)
             return
         self.bytes_sent[CHANNEL_CONTROL] += len(data)
+
+    def _forget(self) -> None:
+        """Drop the old stream before a rejoin: its queued updates must not pass as new ones."""
+        self.snapshot = None
+        self._rejoin_reason = None
+        self._bye = False
+        for _ in range(4 * UPDATE_HWM):
+            try:
+                self._sub.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+
+    def _read_events(self) -> None:
+        for monitor in self._monitors:
+            while True:
+                try:
+                    event = recv_monitor_message(monitor, zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                self._on_event(monitor is self._monitors[0], event["event"], event["value"])
+
+    def _on_event(self, on_sub: bool, kind: int, value: int) -> None:
+        if kind & _HANDSHAKE_FAILED:
+            self.handshake_error = _describe_failure(kind, value)
+            logger.info("handshake with the sender failed: %s", self.handshake_error)
+        elif on_sub and kind == zmq.EVENT_DISCONNECTED:
+            self._sub_dropped = True
+        elif on_sub and kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+            self.handshake_error = None
+            if self._sub_dropped and self.snapshot is not None and self._rejoin_reason is None:
+                self._rejoin_reason = "the sender's connection dropped and came back"
+                logger.info("%s", self._rejoin_reason)
+
+    def _handshake_hint(self) -> str:
+        return "" if self.handshake_error is None else f"; {self.handshake_error}"
 
     def _take_snapshot(self, snapshot: Snapshot, data: bytes) -> None:
         self.snapshot = snapshot
@@ -441,10 +744,17 @@ class ReceiverEndpoint(_Endpoint):
         if isinstance(packet, Snapshot):
             self._take_snapshot(packet, data)
             return packet
+        assert self.snapshot is not None
+        session = getattr(packet, "session_id", None)
+        if session is not None and session != self.snapshot.session_id:
+            self._rejoin_reason = (
+                f"the sender's session changed ({self.snapshot.session_id} -> {session})"
+            )
+            logger.info("%s", self._rejoin_reason)
+            return None
         self._last_heard = self._clock()
         self._bye = isinstance(packet, Bye)
-        assert self.snapshot is not None
-        if isinstance(packet, (KeyFrame, RemPatch)) and packet.seq < self.snapshot.seq:
+        if isinstance(packet, SEQ_KINDS) and packet.seq < self.snapshot.seq:
             self.stats.dropped_old += 1
             return None
         if isinstance(packet, KeyFrame):
@@ -452,3 +762,17 @@ class ReceiverEndpoint(_Endpoint):
         self.stats.received += 1
         self.bytes_received[packet.CHANNEL] += len(data)
         return packet
+
+
+def _describe_failure(kind: int, value: int) -> str:
+    if kind == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
+        return (
+            f"the sender refused this receiver's key (ZAP status {value}; is its public key "
+            "among the sender's allowed keys?)"
+        )
+    if kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
+        return (
+            "CURVE/ZMTP handshake failed (protocol error "
+            f"{value:#x}: wrong server key, or one end is plain and the other encrypted?)"
+        )
+    return f"handshake failed (errno {value}: {os.strerror(value)})"

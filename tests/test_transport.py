@@ -5,15 +5,16 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterator
 
-import numpy as np
 import pytest
 import zmq
+from transport_helpers import JPEG, TIMEOUT_MS, Context, FakeClock, frame, join, snapshot
 
 from protocol.constants import HEARTBEAT_INTERVAL_S, PEER_TIMEOUT_S
 from protocol.packets import (
     Bye,
-    Frame,
+    DeltaFrame,
     Heartbeat,
+    KeyFrame,
     KeyframeRequest,
     ReceiverStats,
     RemPatch,
@@ -21,98 +22,52 @@ from protocol.packets import (
 )
 from protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
 
-TIMEOUT_MS = 5000
-JPEG = b"\xff\xd8\xff\xe0" + bytes(16)
-
-
-class FakeClock:
-    """A monotonic clock the test moves by hand (seconds)."""
-
-    def __init__(self) -> None:
-        self.t = 1000.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-def snapshot(seq: int = 0) -> Snapshot:
-    return Snapshot(
-        session_id=7,
-        seq=seq,
-        width=640,
-        height=480,
-        fps=30.0,
-        vertices=np.arange(12, dtype=np.float32).reshape(4, 3),
-        texture=JPEG,
-        background=b"",
-        quant={"wire": 0.001},
-        wire_layout=[("brow", 4)],
-        rig_version=1,
-    )
-
-
-def frame(seq: int) -> Frame:
-    params = np.array([seq % 30000, -1, 2], np.int16)
-    return Frame(seq, seq * 33_333, seq % 30 == 0, np.zeros(8, np.int16), params)
+Update = KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot
 
 
 @pytest.fixture
-def context() -> Iterator[zmq.Context[zmq.Socket[bytes]]]:
-    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+def context() -> Iterator[Context]:
+    ctx: Context = zmq.Context()
     yield ctx
     ctx.term()
 
 
 @pytest.fixture
-def sender(context: zmq.Context[zmq.Socket[bytes]]) -> Iterator[SenderEndpoint]:
-    s = SenderEndpoint(context=context)
+def sender(context: Context) -> Iterator[SenderEndpoint]:
+    s = SenderEndpoint(context=context, plain=True)
     yield s
     s.close()
 
 
-def receiver_for(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]], **kw: object
-) -> ReceiverEndpoint:
+def receiver_for(sender: SenderEndpoint, context: Context, **kw: object) -> ReceiverEndpoint:
     pub, snap = sender.ports
-    return ReceiverEndpoint("127.0.0.1", pub, snap, context=context, **kw)  # type: ignore[arg-type]
+    return ReceiverEndpoint("127.0.0.1", pub, snap, context=context, plain=True, **kw)  # type: ignore[arg-type]
 
 
-def join(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> Snapshot:
-    """The demo's start-up: the sender waits for the receiver while the receiver joins."""
-    errors: list[BaseException] = []
-
-    def wait() -> None:
-        try:
-            sender.wait_for_receiver(TIMEOUT_MS / 1000)
-        except BaseException as exc:  # reported in the main thread
-            errors.append(exc)
-
-    thread = threading.Thread(target=wait)
-    thread.start()
-    try:
-        snap = receiver.fetch_snapshot(TIMEOUT_MS)
-    finally:
-        thread.join()
-    if errors:
-        raise errors[0]
-    return snap
+def deliver(
+    sender: SenderEndpoint, receiver: ReceiverEndpoint, packets: list[Update], chunk: int = 16
+) -> list[object]:
+    """Publish ``packets`` a chunk at a time (a burst longer than UPDATE_HWM may be dropped by
+    design) and return what the receiver accepted, without Heartbeats (probe answers)."""
+    got: list[object] = []
+    for start in range(0, len(packets), chunk):
+        for packet in packets[start : start + chunk]:
+            sender.publish(packet)
+        # Every published update is either returned or counted as older than the snapshot.
+        while len(got) + receiver.stats.dropped_old < min(start + chunk, len(packets)):
+            received = receiver.recv(TIMEOUT_MS)
+            assert received is not None, f"lost updates after {len(got)}"
+            if not isinstance(received, Heartbeat):
+                got.append(received)
+    return got
 
 
-def test_snapshot_then_300_frames_in_order(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]]
-) -> None:
+def test_snapshot_then_300_frames_in_order(sender: SenderEndpoint, context: Context) -> None:
     sender.set_snapshot(snapshot(seq=0))
     with receiver_for(sender, context) as receiver:
         assert join(sender, receiver) == snapshot(seq=0)
-        for seq in range(300):
-            sender.publish(frame(seq))
-        got: list[Frame] = []
-        while len(got) < 300:
-            packet = receiver.recv(TIMEOUT_MS)
-            assert packet is not None, f"lost frames after {len(got)}"
-            if isinstance(packet, Frame):
-                got.append(packet)
-        assert [p.seq for p in got] == list(range(300))
+        got = deliver(sender, receiver, [frame(seq) for seq in range(300)])
+        assert [p.seq for p in got if isinstance(p, KeyFrame)] == list(range(300))
         assert got[123] == frame(123)
         assert receiver.stats.malformed == 0 and receiver.stats.dropped_old == 0
         assert receiver.bytes_received["geometry"] == sender.bytes_sent["geometry"]
@@ -121,7 +76,7 @@ def test_snapshot_then_300_frames_in_order(
 
 
 def test_late_joiner_gets_snapshot_and_only_newer_updates(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]]
+    sender: SenderEndpoint, context: Context
 ) -> None:
     sender.set_snapshot(snapshot(seq=0))
     for seq in range(40):  # nobody listening: gone
@@ -129,25 +84,24 @@ def test_late_joiner_gets_snapshot_and_only_newer_updates(
     sender.set_snapshot(snapshot(seq=50))
     with receiver_for(sender, context) as receiver:
         assert join(sender, receiver).seq == 50
-        for seq in range(40, 100):  # 40..49 still in flight when the snapshot was taken
-            sender.publish(frame(seq))
-        sender.publish(RemPatch(45, "eyes", "jpeg", JPEG, 10.0, 0.5, 0.5))
-        sender.publish(RemPatch(60, "eyes", "jpeg", JPEG, 10.0, 0.5, 0.5))
-        sender.publish(Bye(99))
-        got: list[object] = []
-        while not got or not isinstance(got[-1], Bye):
-            packet = receiver.recv(TIMEOUT_MS)
-            assert packet is not None
-            if not isinstance(packet, Heartbeat):  # answers to the join probes
-                got.append(packet)
-        assert [p.seq for p in got if isinstance(p, Frame)] == list(range(50, 100))
+        updates: list[Update] = [frame(seq) for seq in range(40, 100)]  # 40..49: in flight
+        updates += [
+            RemPatch(45, "eyes", "jpeg", JPEG, 10.0, 0.5, 0.5),
+            RemPatch(60, "eyes", "jpeg", JPEG, 10.0, 0.5, 0.5),
+            DeltaFrame(1, b"\x01"),  # no seq: always passed on to the decoder
+            Bye(99),
+        ]
+        got = deliver(sender, receiver, updates)
+        assert [p.seq for p in got if isinstance(p, KeyFrame)] == list(range(50, 100))
         assert [p.seq for p in got if isinstance(p, RemPatch)] == [60]
+        assert [p for p in got if isinstance(p, DeltaFrame)] == [DeltaFrame(1, b"\x01")]
+        assert isinstance(got[-1], Bye)
         assert receiver.stats.dropped_old == 11
         assert not receiver.peer_alive  # said Bye
 
 
 def test_malformed_updates_are_counted_dropped_and_survived(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]]
+    sender: SenderEndpoint, context: Context
 ) -> None:
     sender.set_snapshot(snapshot())
     with receiver_for(sender, context) as receiver:
@@ -156,7 +110,7 @@ def test_malformed_updates_are_counted_dropped_and_survived(
         sender.publish(frame(1))
         raw.send(b"")
         raw.send(b"\xc1garbage")
-        raw.send(bytes(frame(2))[:-3])
+        raw.send(bytes(frame(2))[:5])  # truncated header
         raw.send_multipart([b"two", b"parts"])
         raw.send(bytes(KeyframeRequest(3)))  # well-formed but not an update
         sender.publish(frame(2))
@@ -164,16 +118,14 @@ def test_malformed_updates_are_counted_dropped_and_survived(
         while len(seqs) < 2:
             packet = receiver.recv(TIMEOUT_MS)
             assert packet is not None
-            if isinstance(packet, Frame):
+            if isinstance(packet, KeyFrame):
                 seqs.append(packet.seq)
         assert seqs == [1, 2]
         assert receiver.stats.malformed == 5
         assert receiver.peer_alive
 
 
-def test_back_channel_reaches_the_sender(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]]
-) -> None:
+def test_back_channel_reaches_the_sender(sender: SenderEndpoint, context: Context) -> None:
     sender.set_snapshot(snapshot())
     with receiver_for(sender, context) as receiver:
         join(sender, receiver)
@@ -189,9 +141,7 @@ def test_back_channel_reaches_the_sender(
         assert sender.stats.malformed == 0
 
 
-def test_sender_survives_malformed_back_channel(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]]
-) -> None:
+def test_sender_survives_malformed_back_channel(sender: SenderEndpoint, context: Context) -> None:
     dealer = context.socket(zmq.DEALER)
     dealer.setsockopt(zmq.LINGER, 0)
     dealer.connect(f"tcp://127.0.0.1:{sender.ports[1]}")
@@ -211,7 +161,7 @@ def test_sender_survives_malformed_back_channel(
 
 
 def test_snapshot_request_before_snapshot_is_answered_when_set(
-    sender: SenderEndpoint, context: zmq.Context[zmq.Socket[bytes]]
+    sender: SenderEndpoint, context: Context
 ) -> None:
     with receiver_for(sender, context) as receiver:
         result: list[Snapshot] = []
@@ -231,9 +181,9 @@ def test_snapshot_request_before_snapshot_is_answered_when_set(
         assert sender.snapshots_served == 1
 
 
-def test_peer_lost_after_heartbeats_stop(context: zmq.Context[zmq.Socket[bytes]]) -> None:
+def test_peer_lost_after_heartbeats_stop(context: Context) -> None:
     sender_clock, receiver_clock = FakeClock(), FakeClock()  # timing driven by hand
-    sender = SenderEndpoint(context=context, clock=sender_clock)
+    sender = SenderEndpoint(context=context, clock=sender_clock, plain=True)
     sender.set_snapshot(snapshot())
     with sender, receiver_for(sender, context, clock=receiver_clock) as receiver:
         join(sender, receiver)
@@ -258,11 +208,11 @@ def test_peer_lost_after_heartbeats_stop(context: zmq.Context[zmq.Socket[bytes]]
         assert receiver.peer_alive
 
 
-def test_fetch_snapshot_times_out_without_sender(context: zmq.Context[zmq.Socket[bytes]]) -> None:
-    with SenderEndpoint(context=context) as probe_ports:
+def test_fetch_snapshot_times_out_without_sender(context: Context) -> None:
+    with SenderEndpoint(context=context, plain=True) as probe_ports:
         pub, snap = probe_ports.ports
     # Nothing listens on those ports any more.
-    with ReceiverEndpoint("127.0.0.1", pub, snap, context=context) as receiver:
+    with ReceiverEndpoint("127.0.0.1", pub, snap, context=context, plain=True) as receiver:
         with pytest.raises(TransportError) as info:
             receiver.fetch_snapshot(timeout_ms=200)
         assert str(info.value) == (
@@ -285,9 +235,9 @@ def test_publish_rejects_back_channel_packets(sender: SenderEndpoint) -> None:
 
 def test_clean_close_frees_the_ports() -> None:
     # Own contexts: close() terminates them, which waits until the sockets are really gone.
-    sender = SenderEndpoint()
+    sender = SenderEndpoint(plain=True)
     sender.set_snapshot(snapshot())
-    receiver = ReceiverEndpoint("127.0.0.1", *sender.ports)
+    receiver = ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True)
     join(sender, receiver)
     ports = sender.ports
     receiver.close()
@@ -299,5 +249,5 @@ def test_clean_close_frees_the_ports() -> None:
     with pytest.raises(TransportError, match="ReceiverEndpoint is closed"):
         receiver.recv(0)
     # linger 0: nothing holds the close up, and the ports can be bound again at once
-    with SenderEndpoint(pub_port=ports[0], snapshot_port=ports[1]) as again:
+    with SenderEndpoint(pub_port=ports[0], snapshot_port=ports[1], plain=True) as again:
         assert again.ports == ports
