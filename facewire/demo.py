@@ -23,6 +23,7 @@ import numpy as np
 
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
+from protocol.keys import write_keypair
 from protocol.packets import Bye, KeyframeRequest, ReceiverStats
 from protocol.transport import SenderEndpoint, TransportError
 from receiver.recorder import Mp4Recorder
@@ -37,13 +38,17 @@ JOIN_TIMEOUT_S = 60.0
 RECEIVER_TIMEOUT_S = 120.0
 
 
-def _receiver_main(ports: tuple[int, int], output: str, verbosity: int, results: Any) -> None:
+def _receiver_main(
+    ports: tuple[int, int], output: str, verbosity: int, results: Any, keys: dict[str, str]
+) -> None:
     """Child process: join the call, record, send the report back."""
     logging.basicConfig(level=verbosity, format="%(asctime)s receiver %(name)s: %(message)s")
     try:
         from receiver.session import run_receiver
 
-        report = run_receiver(HOST, ports[0], ports[1], output, join_timeout_s=JOIN_TIMEOUT_S)
+        report = run_receiver(
+            HOST, ports[0], ports[1], output, join_timeout_s=JOIN_TIMEOUT_S, **keys
+        )
         results.put(("ok", report.as_dict()))
     except Exception as exc:  # reported as one line by the parent
         logging.getLogger(__name__).debug("receiver failed", exc_info=True)
@@ -80,7 +85,7 @@ def run_demo(args: argparse.Namespace) -> int:
     with video, tempfile.TemporaryDirectory() as tmp:
         # A camera cannot be read twice: keep what was sent for the side-by-side video.
         sent = Path(tmp) / "input.mp4" if video.is_camera and args.compare else None
-        stats = _call(video, args, sent)
+        stats = _call(video, args, sent, Path(tmp))
         if args.compare:
             reference = sent or Path(source)
             _write_compare(reference, Path(args.output), Path(args.compare), stats["frames_out"])
@@ -91,7 +96,9 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _call(video: VideoSource, args: argparse.Namespace, sent: Path | None) -> dict[str, Any]:
+def _call(
+    video: VideoSource, args: argparse.Namespace, sent: Path | None, tmp: Path
+) -> dict[str, Any]:
     encoder = FaceEncoder(video.width, video.height, video.fps)
     frames = video.frames(limit=args.frames)
     buffered = []
@@ -107,10 +114,17 @@ def _call(video: VideoSource, args: argparse.Namespace, sent: Path | None) -> di
     ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
     results = ctx.Queue()
     verbosity = logging.getLogger().getEffectiveLevel()
-    with SenderEndpoint(HOST) as endpoint:
+    # The loopback call is encrypted too: a keypair for each end, made for this call only.
+    sender_public, sender_secret = write_keypair(tmp, "sender")
+    receiver_public, receiver_secret = write_keypair(tmp, "receiver")
+    receiver_keys = {"secret_key_file": str(receiver_secret), "server_key_file": str(sender_public)}
+    with SenderEndpoint(
+        HOST, secret_key_file=sender_secret, allowed_keys=[receiver_public]
+    ) as endpoint:
         endpoint.set_snapshot(snapshot)
         proc = ctx.Process(
-            target=_receiver_main, args=(endpoint.ports, str(args.output), verbosity, results)
+            target=_receiver_main,
+            args=(endpoint.ports, str(args.output), verbosity, results, receiver_keys),
         )
         proc.start()
         try:

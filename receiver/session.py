@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -67,8 +68,12 @@ def run_receiver(
     snapshot_port: int,
     output: str,
     join_timeout_s: float = 20.0,
+    **keys: Any,
 ) -> ReceiverReport:
     """Join the call at ``host``, record the rebuilt frames to ``output`` until Bye.
+
+    ``keys`` go to :class:`~protocol.transport.ReceiverEndpoint` (``secret_key_file`` and
+    ``server_key_file`` for CURVE, or ``plain=True``).
 
     Frame i of the recording rebuilds the sender's frame i: a frame with no packet (nothing
     changed, or the packet was lost) repeats the previous picture, so the recording stays
@@ -77,7 +82,7 @@ def run_receiver(
     requested until one arrives.
     """
     report = ReceiverReport()
-    with ReceiverEndpoint(host, pub_port, snapshot_port) as endpoint:
+    with ReceiverEndpoint(host, pub_port, snapshot_port, **keys) as endpoint:
         snapshot = endpoint.fetch_snapshot(timeout_ms=int(join_timeout_s * 1000))
         decoder = FaceDecoder(snapshot)
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
