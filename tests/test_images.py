@@ -409,4 +409,7 @@ def test_mutated_image_bodies_raise_only_image_errors(base: bytes, where: int, j
         image = decode_image(data, "x")
     except ImageError:
         return
-    assert image.dtype == np.uint8 and image.shape == (H, W, 3)
+    # A JPEG frame header can sit past byte 40: then the junk may rewrite the stated size, and
+    # the decoded picture must have the size the header states.
+    _, width, height = image_size(data)
+    assert image.dtype == np.uint8 and image.shape == (height, width, 3)
