@@ -77,6 +77,23 @@ def join(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> Snapshot:
     return snap
 
 
+def rejoin(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> Snapshot:
+    """fetch_snapshot() again while another thread keeps the sender polling its back channel."""
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            sender.poll(20)
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    try:
+        return receiver.fetch_snapshot(TIMEOUT_MS)
+    finally:
+        stop.set()
+        thread.join()
+
+
 def wait_until(condition: Callable[[], bool], timeout_s: float, step: Callable[[], object]) -> bool:
     """Run ``step`` (which blocks briefly on a socket) until ``condition`` or the timeout."""
     deadline = time.monotonic() + timeout_s
