@@ -54,9 +54,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
     _add_demo(sub)
-    from facewire import wirestool
+    from facewire import keys, wirestool
 
     wirestool.add_parser(sub)
+    keys.add_parser(sub)
     return parser
 
 
