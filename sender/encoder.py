@@ -14,6 +14,7 @@ background with the face removed.
 from __future__ import annotations
 
 import logging
+import secrets
 from dataclasses import dataclass
 
 import cv2
@@ -34,6 +35,7 @@ from models.pose import Pose, estimate_pose
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelEncoder, ChannelSpec
+from protocol.constants import UINT32_MAX
 from protocol.packets import DeltaFrame, KeyFrame, Snapshot
 from protocol.quant import quantise
 from sender.capture import CapturedFrame
@@ -85,7 +87,7 @@ class FaceEncoder:
         fps: float,
         tracker: LandmarkTracker | None = None,
         rig: Rig | None = None,
-        session_id: int = 1,
+        session_id: int | None = None,
         error_px: float = DEFAULT_ERROR_PX,
         basis: WireBasis | None = None,
     ) -> None:
@@ -94,7 +96,8 @@ class FaceEncoder:
         self.rig = rig or load_rig()
         self.basis = basis or load_wire_basis()
         self.canonical = load_canonical()
-        self.session_id = session_id
+        # A new random id per session, so a restarted sender is told apart from the old one.
+        self.session_id = secrets.randbelow(UINT32_MAX) + 1 if session_id is None else session_id
         self.error_px = error_px
         self._pose_vertices = np.array(
             sorted({m.vertex for m in self.rig.markers_with_role("pose")}), dtype=np.int64
