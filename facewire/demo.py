@@ -15,6 +15,7 @@ import multiprocessing as mp
 import queue
 import tempfile
 import time
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,11 +25,12 @@ import numpy as np
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
 from protocol.keys import write_keypair
-from protocol.packets import Bye, KeyframeRequest, ReceiverStats
+from protocol.packets import ReceiverStats
 from protocol.transport import SenderEndpoint, TransportError
 from receiver.recorder import Mp4Recorder
-from sender.capture import CaptureError, VideoSource, demo_clip_path
+from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
+from sender.session import run_sender
 
 logger = logging.getLogger(__name__)
 
@@ -132,24 +134,8 @@ def _call(
             # Frames read before the call began count as captured now; pacing restarts.
             buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
             video.resync(len(buffered))
-            busy = 0.0
-            frames_in = 0
             keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
-            for frame in itertools.chain(buffered, frames):
-                for request in endpoint.poll(0):
-                    logger.debug("back channel: %r", request)
-                    if isinstance(request, KeyframeRequest):
-                        encoder.request_keyframe()
-                start = time.perf_counter()
-                packet = encoder.encode(frame)
-                if packet is not None:  # None: nothing visible changed since the last one
-                    endpoint.publish(packet)
-                busy += time.perf_counter() - start
-                frames_in += 1
-                if keep is not None:
-                    keep.write(frame.image)
-                endpoint.heartbeat_if_idle()
-            endpoint.publish(Bye(seq=frames_in))
+            sender = run_sender(endpoint, encoder, _kept(itertools.chain(buffered, frames), keep))
             if keep is not None:
                 keep.close()
             status, report = results.get(timeout=RECEIVER_TIMEOUT_S)
@@ -165,11 +151,11 @@ def _call(
             ch: endpoint.bytes_sent.get(ch, 0) + endpoint.bytes_received.get(ch, 0)
             for ch in CHANNELS
         }
-    duration = frames_in / video.fps
+    duration = sender.frames_in / video.fps
     kbps = {ch: traffic[ch] * 8 / duration / 1000 for ch in CHANNELS}
     kbps["total"] = sum(kbps.values())
     return {
-        "frames_in": frames_in,
+        "frames_in": sender.frames_in,
         "frames_out": report["frames_out"],
         "frames_held": report["frames_held"],
         "frames_untracked": encoder.frames_untracked,
@@ -178,7 +164,7 @@ def _call(
         "height": video.height,
         "fps": video.fps,
         "duration_s": duration,
-        "sender_fps": frames_in / busy if busy > 0 else 0.0,
+        "sender_fps": sender.fps,
         "receiver_fps": report["receiver_fps"],
         "latency_ms": report["latency_ms"],
         "kbps": kbps,
@@ -187,6 +173,14 @@ def _call(
         "ended_by": report["ended_by"],
         "output": str(args.output),
     }
+
+
+def _kept(frames: Iterable[CapturedFrame], keep: Mp4Recorder | None) -> Iterator[CapturedFrame]:
+    """``frames``, each also written to ``keep`` (a camera's frames cannot be read twice)."""
+    for frame in frames:
+        yield frame
+        if keep is not None:
+            keep.write(frame.image)
 
 
 def _write_compare(source: Path, output: Path, compare: Path, count: int) -> None:
