@@ -14,7 +14,6 @@ import logging
 import multiprocessing as mp
 import queue
 import tempfile
-import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -25,12 +24,11 @@ import numpy as np
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
 from protocol.keys import write_keypair
-from protocol.packets import ReceiverStats
-from protocol.transport import SenderEndpoint, TransportError
+from protocol.transport import SenderEndpoint
 from receiver.recorder import Mp4Recorder
 from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
-from sender.session import run_sender
+from sender.session import run_sender, wait_until_ready
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +39,7 @@ RECEIVER_TIMEOUT_S = 120.0
 
 
 def _receiver_main(
-    ports: tuple[int, int], output: str, verbosity: int, results: Any, keys: dict[str, str]
+    ports: tuple[int, int], output: str, verbosity: int, results: Any, keys: dict[str, Any]
 ) -> None:
     """Child process: join the call, record, send the report back."""
     logging.basicConfig(level=verbosity, format="%(asctime)s receiver %(name)s: %(message)s")
@@ -59,18 +57,8 @@ def _receiver_main(
 
 def _wait_for_join(endpoint: SenderEndpoint, proc: Any, results: Any) -> None:
     """Until the receiver has the snapshot and says it is ready to render."""
-    deadline = time.monotonic() + JOIN_TIMEOUT_S
-    joined = False
-    while proc.is_alive() and time.monotonic() < deadline:
-        if not joined:
-            try:
-                endpoint.wait_for_receiver(timeout_s=0.5)
-                joined = True
-            except TransportError:
-                continue
-        for packet in endpoint.poll(timeout_ms=100):
-            if isinstance(packet, ReceiverStats) and packet.values.get("ready"):
-                return
+    if wait_until_ready(endpoint, JOIN_TIMEOUT_S, proc.is_alive):
+        return
     try:
         status, detail = results.get(timeout=1.0)
     except queue.Empty:

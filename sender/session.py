@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from protocol.packets import Bye, DeltaFrame, KeyFrame, KeyframeRequest, ReceiverStats
-from protocol.transport import SenderEndpoint
+from protocol.transport import SenderEndpoint, TransportError
 from sender.capture import CapturedFrame
 from sender.encoder import FaceEncoder
 
@@ -62,6 +62,29 @@ def run_sender(
     endpoint.publish(Bye(seq=next_seq))
     _read_back_channel(endpoint, encoder, report)
     return report
+
+
+def wait_until_ready(
+    endpoint: SenderEndpoint, timeout_s: float, keep_waiting: Callable[[], bool] = lambda: True
+) -> bool:
+    """Until a receiver has fetched the snapshot and says it is ready to render (building its
+    renderer takes a while: frames sent before then would only queue up as latency).
+
+    False after ``timeout_s``, or as soon as ``keep_waiting()`` is False.
+    """
+    deadline = time.monotonic() + timeout_s
+    joined = False
+    while keep_waiting() and time.monotonic() < deadline:
+        if not joined:
+            try:
+                endpoint.wait_for_receiver(timeout_s=0.5)
+                joined = True
+            except TransportError:
+                continue
+        for packet in endpoint.poll(timeout_ms=100):
+            if isinstance(packet, ReceiverStats) and packet.values.get("ready"):
+                return True
+    return False
 
 
 def _read_back_channel(
