@@ -84,8 +84,9 @@ CHANNELS: Final = (CHANNEL_SNAPSHOT, CHANNEL_GEOMETRY, CHANNEL_REM, CHANNEL_CONT
 
 #: The sender publishes a Heartbeat when it has published nothing for this long.
 HEARTBEAT_INTERVAL_S: Final = 1.0
-#: A receiver declares the peer lost after this long without a well-formed packet.
-PEER_TIMEOUT_S: Final = 3.0
+#: A receiver declares the peer lost after this long without a well-formed packet: two
+#: heartbeats missed and half an interval of slack, so a lost sender is noticed within 3 s.
+PEER_TIMEOUT_S: Final = 2.5
 #: During the handshake the receiver re-sends its probe this often until its SUB socket
 #: receives a published packet.
 PROBE_INTERVAL_MS: Final = 100
