@@ -63,6 +63,7 @@ def snapshot(texture_bytes: int) -> Snapshot:
         texture=b"\xff\xd8\xff\xe0" + bytes(texture_bytes),
         background=b"",
         channels=[("wire", 4, 0.001)],
+        reference=[(0, 0, 0, 0)],
         rig_hash="ab" * 32,
         keyframe_interval=30,
     )

@@ -37,6 +37,7 @@ from protocol.constants import (
     INT64_MIN,
     JPEG_MAGIC,
     MAX_ARRAY_LEN,
+    MAX_CHANNEL_VALUE,
     MAX_CHANNELS,
     MAX_FRAME_BODY,
     MAX_IMAGE_SIDE,
@@ -226,11 +227,13 @@ class Snapshot(_Packet):
         (protocol.channels.ChannelSpec)
     rig_hash : SHA-256 (hex) of the rig data both ends must share (models.rig.rig_hash)
     keyframe_interval : frames between keyframes
+    reference : the quantised channel values of the snapshot frame itself, one tuple of ints
+        per channel in table order (where the head was in the background image)
     """
 
     KIND: ClassVar[Kind] = Kind.SNAPSHOT
     CHANNEL: ClassVar[str] = CHANNEL_SNAPSHOT
-    N_FIELDS: ClassVar[int] = 13
+    N_FIELDS: ClassVar[int] = 14
 
     session_id: int
     seq: int
@@ -243,6 +246,7 @@ class Snapshot(_Packet):
     channels: Sequence[tuple[str, int, float]]
     rig_hash: str
     keyframe_interval: int
+    reference: Sequence[Sequence[int]]
     meta: Mapping[str, str | int | float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -279,6 +283,7 @@ class Snapshot(_Packet):
             "keyframe_interval",
             _int("Snapshot.keyframe_interval", self.keyframe_interval, 1, 65535),
         )
+        _set(self, "reference", _reference("Snapshot.reference", self.reference, self.channels))
         meta: dict[str, str | int | float] = {}
         for k, val in _map("Snapshot.meta", self.meta).items():
             key = _str("Snapshot.meta key", k)
@@ -308,6 +313,7 @@ class Snapshot(_Packet):
             self.rig_hash,
             self.keyframe_interval,
             dict(self.meta),
+            [list(values) for values in self.reference],
         ]
 
     @classmethod
@@ -319,7 +325,9 @@ class Snapshot(_Packet):
                 f"Snapshot.vertices: {len(raw)} bytes for {n} vertices (expected {12 * n})"
             )
         vertices = np.frombuffer(raw, dtype="<f4").reshape(n, 3)
-        return cls(f[0], f[1], f[2], f[3], f[4], vertices, f[7], f[8], f[9], f[10], f[11], f[12])
+        return cls(
+            f[0], f[1], f[2], f[3], f[4], vertices, f[7], f[8], f[9], f[10], f[11], f[13], f[12]
+        )
 
 
 def _channel_table(name: str, value: object) -> tuple[tuple[str, int, float], ...]:
@@ -345,6 +353,28 @@ def _channel_table(name: str, value: object) -> tuple[tuple[str, int, float], ..
     if len(set(names)) != len(names):
         raise PacketError(f"{name}: duplicate channel names")
     return tuple(table)
+
+
+def _reference(
+    name: str, value: object, channels: Sequence[tuple[str, int, float]]
+) -> tuple[tuple[int, ...], ...]:
+    if not isinstance(value, Sequence) or isinstance(value, (str, bytes)):
+        raise PacketError(f"{name}: expected array, got {_wire_type(value)}")
+    if len(value) != len(channels):
+        raise PacketError(f"{name}: {len(value)} channels, the table has {len(channels)}")
+    out = []
+    for values, (channel, size, _) in zip(value, channels, strict=True):
+        if not isinstance(values, Sequence) or isinstance(values, (str, bytes)):
+            raise PacketError(f"{name}[{channel!r}]: expected array, got {_wire_type(values)}")
+        if len(values) != size:
+            raise PacketError(f"{name}[{channel!r}]: {len(values)} values, expected {size}")
+        out.append(
+            tuple(
+                _int(f"{name}[{channel!r}]", v, -MAX_CHANNEL_VALUE, MAX_CHANNEL_VALUE)
+                for v in values
+            )
+        )
+    return tuple(out)
 
 
 _KEY_HEAD = struct.Struct("<BIIq")  # counter, session_id, seq, capture_us

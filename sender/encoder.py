@@ -165,6 +165,7 @@ class FaceEncoder:
             channels=[(s.name, s.size, s.step) for s in specs],
             rig_hash=rig_hash(),
             keyframe_interval=interval,
+            reference=[tuple(int(v) for v in self._last_values[s.name]) for s in specs],
             meta={"tracker": "mediapipe-landmarks", "texture_size": TEXTURE_SIZE},
         )
 

@@ -47,23 +47,39 @@ channel_tables = st.lists(
     max_size=6,
     unique_by=lambda t: t[0],
 )
-snapshots = st.builds(
-    Snapshot,
-    session_id=uint32,
-    seq=uint32,
-    width=st.integers(1, 4096),
-    height=st.integers(1, 4096),
-    fps=st.floats(0.1, 240.0),
-    vertices=hnp.arrays(
-        np.float32, st.tuples(st.integers(1, 30), st.just(3)), elements=st.floats(-50, 50, width=32)
-    ),
-    texture=images,
-    background=images,
-    channels=channel_tables,
-    rig_hash=st.text("0123456789abcdef", min_size=64, max_size=64),
-    keyframe_interval=st.integers(1, 65535),
-    meta=st.dictionaries(names, st.one_of(st.text(max_size=30), int64, finite), max_size=5),
-)
+
+
+@st.composite
+def snapshots(draw: st.DrawFn) -> Snapshot:
+    channels = draw(channel_tables)
+    values = st.integers(-(2**24), 2**24)
+    reference = [draw(st.lists(values, min_size=n, max_size=n)) for _, n, _ in channels]
+    return draw(_snapshots(channels, reference))
+
+
+def _snapshots(channels: list, reference: list) -> st.SearchStrategy[Snapshot]:
+    return st.builds(
+        Snapshot,
+        session_id=uint32,
+        seq=uint32,
+        width=st.integers(1, 4096),
+        height=st.integers(1, 4096),
+        fps=st.floats(0.1, 240.0),
+        vertices=hnp.arrays(
+            np.float32,
+            st.tuples(st.integers(1, 30), st.just(3)),
+            elements=st.floats(-50, 50, width=32),
+        ),
+        texture=images,
+        background=images,
+        channels=st.just(channels),
+        rig_hash=st.text("0123456789abcdef", min_size=64, max_size=64),
+        keyframe_interval=st.integers(1, 65535),
+        reference=st.just(reference),
+        meta=st.dictionaries(names, st.one_of(st.text(max_size=30), int64, finite), max_size=5),
+    )
+
+
 rem_patches = st.builds(
     RemPatch,
     seq=uint32,
@@ -75,7 +91,7 @@ rem_patches = st.builds(
     v_mean=st.floats(0, 1),
 )
 packets = st.one_of(
-    snapshots,
+    snapshots(),
     key_frames,
     delta_frames,
     rem_patches,
@@ -132,6 +148,7 @@ EXAMPLES = {
         channels=[("pose.rotation", 3, 0.002), ("pose.scale", 1, 0.002), ("wire", 16, 0.05)],
         rig_hash="0123456789abcdef" * 4,
         keyframe_interval=120,
+        reference=[(0, -3, 12), (-40,), tuple(range(-8, 8))],
         meta={"mesh": "canonical", "subdivision": 1, "focal_px": 600.5},
     ),
     "key_frame": KeyFrame(
@@ -234,6 +251,7 @@ def snapshot_fields(**changes: object) -> bytes:
         "rig_hash": "ab" * 32,
         "keyframe_interval": 60,
         "meta": {},
+        "reference": [[0, 0, 0, 0]],
     }
     fields.update(changes)
     return pack(1, *fields.values())
@@ -259,6 +277,9 @@ def snapshot_fields(**changes: object) -> bytes:
         ({"meta": {"x": [1]}}, "Snapshot.meta['x']: expected str, int or float, got array"),
         ({"meta": {"x": True}}, "Snapshot.meta['x']: expected str, int or float, got bool"),
         ({"vertices": bytes(8) + b"\x00\x00\xc0\x7f"}, "Snapshot.vertices: non-finite"),
+        ({"reference": [[0, 0, 0]]}, "Snapshot.reference['wire']: 3 values, expected 4"),
+        ({"reference": []}, "Snapshot.reference: 0 channels, the table has 1"),
+        ({"reference": [[0, 0, 0, 2**25]]}, "Snapshot.reference['wire']: 33554432 outside"),
     ],
 )
 def test_snapshot_errors(changes: dict[str, object], message: str | None) -> None:
@@ -299,7 +320,7 @@ def test_constructors_validate_like_the_decoder() -> None:
         DeltaFrame(256, b"")
     assert str(info.value) == "DeltaFrame.counter: 256 outside [0, 255]"
     with pytest.raises(PacketError) as info:
-        Snapshot(1, 0, 640, 480, 30.0, np.zeros((4, 2)), b"", b"", [], "ab" * 32, 1)
+        Snapshot(1, 0, 640, 480, 30.0, np.zeros((4, 2)), b"", b"", [], "ab" * 32, 1, [])
     assert str(info.value) == "Snapshot.vertices: expected (n, 3) float array, got shape (4, 2)"
     with pytest.raises(PacketError, match="DeltaFrame.body: 20000 bytes exceeds 16384"):
         DeltaFrame(0, bytes(20000))

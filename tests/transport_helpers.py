@@ -41,6 +41,7 @@ def snapshot(seq: int = 0, session_id: int = SESSION, texture: bytes = JPEG) -> 
         texture=texture,
         background=b"",
         channels=[("wire", 4, 0.001)],
+        reference=[(0, 0, 0, 0)],
         rig_hash="ab" * 32,
         keyframe_interval=30,
     )
