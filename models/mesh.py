@@ -63,6 +63,28 @@ class FaceMesh:
         return np.unique(e, axis=0)
 
     @cached_property
+    def outline(self) -> np.ndarray:
+        """(k,) int64 vertex indices of the longest boundary loop, in order around it: on the
+        canonical face mesh, the face's outer contour (forehead, cheeks, chin)."""
+        t = self.triangles
+        directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+        undirected = np.sort(directed, axis=1)
+        _, inverse, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
+        # An edge used by one triangle is on a boundary; follow the triangles' winding.
+        following = {int(a): int(b) for a, b in directed[counts[inverse.ravel()] == 1]}
+        loops: list[list[int]] = []
+        while following:
+            start, v = following.popitem()
+            loop = [start]
+            while v != start and v in following:
+                loop.append(v)
+                v = following.pop(v)
+            loops.append(loop)
+        if not loops:
+            raise ValueError("the mesh has no boundary")
+        return np.asarray(max(loops, key=len), dtype=np.int64)
+
+    @cached_property
     def adjacency(self) -> sp.csr_matrix:
         """(n, n) symmetric 0/1 vertex adjacency over mesh edges."""
         e = self.edges

@@ -32,6 +32,7 @@ from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from protocol.images import ImageError, decode_image
 from protocol.packets import DeltaFrame, KeyFrame, Snapshot
 from protocol.quant import dequantise
+from receiver.surround import SurroundWarp
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +44,9 @@ class SnapshotError(ValueError):
 #: Shown where a snapshot carries no texture or background (the format allows empty images).
 MISSING_IMAGE_GREY = 128
 MISSING_TEXTURE_SIZE = 64
+#: Width of the band inside the face outline where the rendered face fades into the
+#: background, as a fraction of the face's width.
+FEATHER = 0.06
 
 
 def _image(data: bytes, what: str, fallback_size: tuple[int, int]) -> np.ndarray:
@@ -103,8 +107,21 @@ class FaceDecoder:
             self.texture,
             self.background,
         )
+        # Where the snapshot frame showed the face outline: the surroundings of the head are
+        # carried from there to wherever the face is drawn.
+        self._outline = self.mesh.outline
+        reference = FrameValues(
+            snapshot.seq,
+            0,
+            {
+                s.name: np.asarray(v, np.int64)
+                for s, v in zip(self.specs, snapshot.reference, strict=True)
+            },
+        )
+        at_snapshot = self.image_vertices(reference)
+        self.surround = SurroundWarp(self.background, at_snapshot[self._outline, :2])
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
-        self.renderer.render(self.mesh.vertices * [1.0, -1.0, -1.0])
+        self.renderer.render(at_snapshot)
 
     def decode(self, packet: KeyFrame | DeltaFrame) -> FrameValues:
         """Channel values of a frame packet (raises ChainBroken after a gap, PacketError)."""
@@ -122,8 +139,15 @@ class FaceDecoder:
         return pose.apply(self.wires.deform(params))
 
     def reconstruct(self, values: FrameValues) -> np.ndarray:
-        """(h, w, 3) uint8 BGR rendering of one frame's values."""
-        image, _ = self.renderer.render(self.image_vertices(values))
+        """(h, w, 3) uint8 BGR rendering of one frame's values: the face over the snapshot
+        frame, whose surroundings of the head are moved along with the face."""
+        vertices = self.image_vertices(values)
+        outline = vertices[self._outline, :2]
+        background = self.surround.warp(outline)
+        # The face's edge fades into the background (the snapshot frame, carried along), which
+        # shows the real face edge there: no seam at the outline.
+        feather = FEATHER * float(np.ptp(outline[:, 0]))
+        image, _ = self.renderer.render(vertices, background, feather)
         return image
 
     def close(self) -> None:

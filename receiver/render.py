@@ -17,6 +17,7 @@ import os
 import threading
 from types import TracebackType
 
+import cv2
 import numpy as np
 
 # pyrender picks its GL platform at import time; EGL needs no display.
@@ -215,11 +216,20 @@ class FaceRenderer:
         self._texture = self._make_texture(tex)
         self._material.baseColorTexture = self._texture
 
-    def render(self, image_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def render(
+        self,
+        image_vertices: np.ndarray,
+        background_bgr: np.ndarray | None = None,
+        feather_px: float = 0.0,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Draw the mesh at ``image_vertices`` and composite it over the background.
 
         image_vertices : (n, 3) float, image space (pixels, x right, y down, z away from
             the camera)
+        background_bgr : (height, width, 3) uint8 for this frame only, drawn into (not
+            copied); default: the one from :meth:`set_background`
+        feather_px : the face fades into the background over this many pixels inside its
+            edge (0: a hard, antialiased edge)
         returns frame_bgr (height, width, 3) uint8 and mask (height, width) bool, True where
             the face covers the pixel centre (more than half of the multisample coverage).
         """
@@ -241,7 +251,12 @@ class FaceRenderer:
 
         rgba, _ = self._renderer.render(self._scene, flags=self._flags)
         self._uploaded = True
-        return self._composite(rgba)
+        if background_bgr is not None:
+            shape = (self.height, self.width, 3)
+            background = _check_uint8_image("background_bgr", background_bgr, shape)
+        else:
+            background = None if self._background is None else self._background.copy()
+        return self._composite(rgba, background, feather_px)
 
     def close(self) -> None:
         """Free the GL context; the renderer cannot be used afterwards."""
@@ -330,25 +345,33 @@ class FaceRenderer:
         )
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
 
-    def _composite(self, rgba: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _composite(
+        self, rgba: np.ndarray, background: np.ndarray | None, feather_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         # Cleared to transparent black, so after the multisample resolve the colour is
         # premultiplied by coverage: out = colour + background * (1 - alpha). Only the
         # face's bounding box needs blending.
         alpha = rgba[:, :, 3]
         mask = alpha > 127
-        out = (
-            np.zeros((self.height, self.width, 3), np.uint8)
-            if self._background is None
-            else self._background.copy()
-        )
+        out = np.zeros((self.height, self.width, 3), np.uint8) if background is None else background
         rows = np.flatnonzero(alpha.any(axis=1))
         if len(rows) == 0:
             return out, mask
         cols = np.flatnonzero(alpha[rows[0] : rows[-1] + 1].any(axis=0))
         box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
         color = rgba[box][:, :, :3]
-        if self._background is None:
+        if background is None:
             out[box] = color
+            return out, mask
+        if feather_px > 0:
+            # Weight by the distance to the face's edge; colour is premultiplied by alpha, so
+            # both scale together.
+            inside = np.pad(mask[box].astype(np.uint8), 1)
+            distance = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
+            weight = np.minimum(distance / feather_px, 1.0)
+            a = alpha[box] * weight
+            blended = color * weight[:, :, None] + out[box] * (1.0 - a / 255.0)[:, :, None]
+            out[box] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
             return out, mask
         keep = (255 - alpha[box]).astype(np.uint16)[:, :, None]
         blended = color + ((out[box] * keep + 127) // 255).astype(np.uint8)

@@ -8,7 +8,8 @@ wire basis -> channel values quantised with hysteresis -> key or delta frame pac
 
 The session model (what the receiver loads once) is built from the first frame with a face:
 the person's mesh (landmarks in model space), the texture unwrapped from that frame and the
-background with the face removed.
+frame itself as the background: the receiver carries the head's surroundings (and the face
+under the rendered one) along with the face, so nothing needs filling in.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from protocol.packets import DeltaFrame, KeyFrame, Snapshot
 from protocol.quant import quantise
 from sender.capture import CapturedFrame
 from sender.landmarks import LandmarkTracker
-from sender.texture import UvRasteriser, make_background
+from sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
 
@@ -128,8 +129,7 @@ class FaceEncoder:
         texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, TEXTURE_SIZE).unwrap(
             frame.image, points
         )
-        # Fill only the face itself: a wider fill shows as a blurred ring around the head.
-        background = make_background(frame.image, points, mesh.triangles, dilate_fraction=0.02)
+        background = frame.image.copy()
         self.session = SessionModel(mesh, texture, background)
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         self.wires.prepare_fit()

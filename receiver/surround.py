@@ -1,0 +1,188 @@
+"""The region around the face (hair, ears, neck) carried by the head's motion.
+
+The face mesh covers only the face oval. Everything else the receiver shows comes from the
+snapshot frame (its background image, with the face filled in). Left still, that frame shows
+hair and ears frozen while the face slides over them, and the filled-in face where the head
+used to be. Instead, every frame warps the snapshot frame with a thin-plate spline:
+
+- inner ring: the face outline (the mesh's boundary loop) goes from where it was in the
+  snapshot frame to where the rendered face puts it now, so the filled-in face stays under the
+  rendered one and no hole opens;
+- head ring: the outline scaled about its centre by ``HEAD_REACH`` (hair, ears, chin) moves
+  with the similarity (shift, rotation, scale) that best maps the old outline to the new one;
+  below the mouth the ring moves less, fading to ``NECK_FOLLOW`` at the bottom, so the neck
+  bends instead of the shoulders flying with the head;
+- still ring (the outline scaled by ``STILL_REACH``): stays put, and the head's part of the
+  warp fades out just beyond it, so the background stays where the camera sees it. A camera
+  homography, when given, moves the whole scene.
+
+The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
+per frame with its centres at the current control points, evaluated on a coarse grid and
+interpolated to full size for ``cv2.remap``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+#: Head ring = face outline scaled about its centre by this much (takes in hair and ears).
+HEAD_REACH = 1.6
+#: Still ring = face outline scaled by this much: the background beyond it does not follow
+#: the head (a spline with only the frame's border held would bend the whole scene).
+STILL_REACH = 2.4
+#: How much of the head's motion the bottom of the head ring (under the chin) follows.
+NECK_FOLLOW = 0.5
+#: Beyond the still ring the head's part of the warp eases to nothing by this many times
+#: the ring's radius.
+FADE = 1.3
+#: The spline is evaluated every GRID_STEP pixels and interpolated in between.
+GRID_STEP = 16
+#: Tikhonov regulariser of the spline (pixels^2): keeps nearly coincident controls stable.
+SMOOTHING = 1e-3
+
+
+def _kernel(r2: np.ndarray) -> np.ndarray:
+    """Thin-plate radial basis U(r) = r^2 log r^2 (U(0) = 0), from squared distances."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = r2 * np.log(r2)
+    out[r2 == 0] = 0.0
+    return out
+
+
+def similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(2, 3) least-squares similarity (rotation, uniform scale, shift) taking ``src`` to
+    ``dst``, both (k, 2)."""
+    matrix, _ = cv2.estimateAffinePartial2D(
+        src.astype(np.float32), dst.astype(np.float32), method=cv2.LMEDS
+    )
+    if matrix is None:  # degenerate outline (all points together): follow the centre only
+        matrix = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        matrix[:, 2] = dst.mean(0) - src.mean(0)
+    return np.asarray(matrix, dtype=np.float64)
+
+
+def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(2, 3) affine or (3, 3) homography applied to (k, 2) points."""
+    if matrix.shape == (2, 3):
+        return points @ matrix[:, :2].T + matrix[:, 2]
+    h = np.c_[points, np.ones(len(points))] @ matrix.T
+    return h[:, :2] / h[:, 2:3]
+
+
+class SurroundWarp:
+    """Warps the snapshot frame so the head's surroundings follow the face.
+
+    background : (h, w, 3) uint8, the snapshot frame
+    outline : (k, 2) float, image pixels: the face outline (mesh boundary loop) where the
+        snapshot frame shows it
+    """
+
+    def __init__(self, background: np.ndarray, outline: np.ndarray) -> None:
+        outline = np.asarray(outline, dtype=np.float64)
+        if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3:
+            raise ValueError(f"expected (k, 2) outline with k >= 3, got {outline.shape}")
+        self.background = background
+        self.height, self.width = background.shape[:2]
+        self.outline = outline
+        centre = outline.mean(0)
+        self._head = centre + HEAD_REACH * (outline - centre)
+        self._still = (centre + STILL_REACH * (outline - centre))[::2]
+        # 1 above the mouth, fading to NECK_FOLLOW at the ring's lowest point.
+        bottom = self._head[:, 1].max()
+        mouth = centre[1] + 0.35 * (outline[:, 1].max() - centre[1])
+        fade = np.clip((self._head[:, 1] - mouth) / max(bottom - mouth, 1e-6), 0.0, 1.0)
+        self._follow = 1.0 - (1.0 - NECK_FOLLOW) * fade
+        # Grid nodes where cv2.resize by GRID_STEP samples them ((j + 0.5) * step - 0.5), so
+        # resizing the coarse map is exact bilinear interpolation between nodes.
+        nx, ny = -(-self.width // GRID_STEP), -(-self.height // GRID_STEP)
+        xs = (np.arange(nx) + 0.5) * GRID_STEP - 0.5
+        ys = (np.arange(ny) + 0.5) * GRID_STEP - 0.5
+        gx, gy = np.meshgrid(xs, ys)
+        self._grid = np.c_[gx.ravel(), gy.ravel()]
+        self._grid_sq = (self._grid**2).sum(1)[:, None]
+        self._grid_shape = gy.shape
+        self._reach = _reach_weight(self._grid, centre, STILL_REACH * (outline - centre))
+        self._pixels = np.meshgrid(
+            np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
+        )
+
+    def controls(
+        self, outline: np.ndarray, camera: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(now, then): where each control point of the head is in this frame and in the
+        snapshot frame (face outline, head ring, still ring).
+
+        ``outline`` (k, 2) is the face outline now; ``camera`` an optional (3, 3) homography
+        taking snapshot-frame background pixels to this frame's.
+        """
+        outline = np.asarray(outline, dtype=np.float64)
+        if outline.shape != self.outline.shape:
+            raise ValueError(f"expected outline {self.outline.shape}, got {outline.shape}")
+        head = _apply(similarity(self.outline, outline), self._head)
+        still = self._head if camera is None else _apply(camera, self._head)
+        head = still + self._follow[:, None] * (head - still)
+        ring = self._still if camera is None else _apply(camera, self._still)
+        now = np.concatenate([outline, head, ring])
+        then = np.concatenate([self.outline, self._head, self._still])
+        return now, then
+
+    def source_map(
+        self, outline: np.ndarray, camera: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Full-size float32 maps (x, y) for ``cv2.remap``: the snapshot pixel each output
+        pixel shows.
+
+        The displacement is the camera's (exact, everywhere) plus the head's: a thin-plate
+        spline through the head's controls, faded to nothing just beyond the still ring, so
+        the scene further out is untouched by the head.
+        """
+        now, then = self.controls(outline, camera)
+        back = np.linalg.inv(camera) if camera is not None else None
+        scene = self._grid if back is None else _apply(back, self._grid)
+        # What the head adds to the camera's motion, at each control point.
+        residual = then - (now if back is None else _apply(back, now))
+        n = len(now)
+        system = np.zeros((n + 3, n + 3))
+        d2 = ((now[:, None, :] - now[None, :, :]) ** 2).sum(-1)
+        system[:n, :n] = _kernel(d2) + SMOOTHING * np.eye(n)
+        system[:n, n] = 1.0
+        system[:n, n + 1 :] = now
+        system[n, :n] = 1.0
+        system[n + 1 :, :n] = now.T
+        rhs = np.zeros((n + 3, 2))
+        rhs[:n] = residual
+        coef = np.linalg.solve(system, rhs)
+        g2 = np.maximum(self._grid_sq + (now**2).sum(1) - 2.0 * self._grid @ now.T, 0.0)
+        head = _kernel(g2) @ coef[:n] + coef[n] + self._grid @ coef[n + 1 :]
+        # Upsample the displacement, not the position: beyond the outermost nodes resize
+        # holds the value, which is right for a displacement that is smooth there.
+        shift = scene - self._grid + self._reach[:, None] * head
+        coarse = shift.reshape(*self._grid_shape, 2).astype(np.float32)
+        size = (coarse.shape[1] * GRID_STEP, coarse.shape[0] * GRID_STEP)
+        full = cv2.resize(coarse, size, interpolation=cv2.INTER_LINEAR)
+        full = full[: self.height, : self.width]
+        return full[..., 0] + self._pixels[0], full[..., 1] + self._pixels[1]
+
+    def warp(self, outline: np.ndarray, camera: np.ndarray | None = None) -> np.ndarray:
+        """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along."""
+        map_x, map_y = self.source_map(outline, camera)
+        return cv2.remap(
+            self.background, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+
+
+def _reach_weight(points: np.ndarray, centre: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """(m,) 1 inside the ring (offsets ``ring`` from ``centre``), easing to 0 at FADE times
+    its radius in each direction."""
+    angles = np.arctan2(ring[:, 1], ring[:, 0])
+    order = np.argsort(angles)
+    radii = np.hypot(ring[:, 0], ring[:, 1])[order]
+    d = points - centre
+    radius = np.interp(np.arctan2(d[:, 1], d[:, 0]), angles[order], radii, period=2 * np.pi)
+    t = np.clip((np.hypot(d[:, 0], d[:, 1]) / radius - 1.0) / (FADE - 1.0), 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)

@@ -1,0 +1,140 @@
+"""The head's surroundings (hair, ears, neck) move with the face; the background stays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from receiver.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp
+
+H, W = 360, 480
+FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
+
+
+def outline(centre=(240.0, 170.0), radius=(50.0, 65.0), k=36) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    return np.c_[centre[0] + radius[0] * np.cos(t), centre[1] + radius[1] * np.sin(t)]
+
+
+def noise_image() -> np.ndarray:
+    rng = np.random.default_rng(3)
+    small = rng.integers(0, 256, (H // 8, W // 8, 3), dtype=np.uint8)
+    return cv2.resize(small, (W, H), interpolation=cv2.INTER_CUBIC)
+
+
+def test_a_still_face_leaves_the_frame_untouched() -> None:
+    image = noise_image()
+    warp = SurroundWarp(image, outline())
+    assert np.array_equal(warp.warp(outline()), image)
+
+
+def test_the_head_ring_moves_with_the_face_and_the_scene_stays() -> None:
+    o = outline()
+    warp = SurroundWarp(noise_image(), o)
+    shift = np.array([15.0, -8.0])
+    map_x, map_y = warp.source_map(o + shift)
+
+    def source(p: np.ndarray) -> np.ndarray:
+        x, y = np.round(p).astype(int)
+        return np.array([map_x[y, x], map_y[y, x]])
+
+    centre = o.mean(0)
+    # Hair and ears (between the outline and the head ring, above the mouth) came along, within
+    # a fifth of the move (the spline bends a little between the rings).
+    for q in (centre + 1.3 * (o - centre))[[27, 24, 30, 0, 18]]:  # top, upper sides, sides
+        assert np.allclose(source(q + shift), q, atol=3.0), (q, source(q + shift))
+    # Beyond the still ring the background did not move.
+    far = centre + (STILL_REACH * FADE + 0.1) * (o - centre)
+    for q in far[(far[:, 0] > 0) & (far[:, 0] < W - 1) & (far[:, 1] > 0) & (far[:, 1] < H - 1)]:
+        assert np.allclose(source(q), q, atol=0.75), q
+    assert HEAD_REACH < STILL_REACH
+
+
+def test_the_neck_follows_less_than_the_head() -> None:
+    o = outline()
+    warp = SurroundWarp(noise_image(), o)
+    map_x, _ = warp.source_map(o + [20.0, 0.0])
+    centre = o.mean(0)
+    top = (centre + 1.3 * (o[27] - centre)).round().astype(int)  # above the forehead
+    chin = (centre + 1.3 * (o[9] - centre)).round().astype(int)  # under the chin
+    moved_top = top[0] + 20 - map_x[top[1], top[0] + 20]
+    moved_chin = chin[0] + 20 - map_x[chin[1], chin[0] + 20]
+    assert moved_top == pytest.approx(20.0, abs=3.0)
+    assert 5.0 < moved_chin < moved_top - 3.0
+
+
+def test_camera_motion_moves_the_whole_scene() -> None:
+    image = noise_image()
+    o = outline()
+    warp = SurroundWarp(image, o)
+    camera = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0], [0.0, 0.0, 1.0]])
+    got = warp.warp(o + [6.0, -4.0], camera)
+    expected = cv2.warpAffine(image, camera[:2], (W, H), borderMode=cv2.BORDER_REPLICATE)
+    inner = np.s_[8:-8, 10:-10]
+    assert np.abs(got[inner].astype(int) - expected[inner]).mean() < 1.0
+
+
+def test_an_outline_of_another_size_is_refused() -> None:
+    warp = SurroundWarp(noise_image(), outline())
+    with pytest.raises(ValueError, match=r"expected outline \(36, 2\), got \(20, 2\)"):
+        warp.warp(outline(k=20))
+
+
+# --- in the call, on a real photographed face ----------------------------------------------------
+
+
+def _frame(face: np.ndarray, angle: float, shift: tuple[float, float]) -> np.ndarray:
+    m = cv2.getRotationMatrix2D((210, 210), angle, 0.8)
+    m[:, 2] += (W / 2 - 210 + shift[0], H / 2 - 210 + shift[1])
+    return cv2.warpAffine(face, m, (W, H), borderMode=cv2.BORDER_REFLECT)
+
+
+def test_hair_follows_the_head_and_no_old_face_shows(tmp_path: Path) -> None:
+    from models.mesh import load_canonical
+    from protocol.packets import decode
+    from receiver.decoder import FaceDecoder
+    from sender.capture import CapturedFrame
+    from sender.encoder import FaceEncoder
+    from sender.landmarks import LandmarkTracker
+    from sender.texture import face_hull_mask
+
+    face = cv2.imread(str(FIXTURE))
+    first, moved = _frame(face, 0.0, (0.0, 0.0)), _frame(face, 7.0, (26.0, 10.0))
+    encoder = FaceEncoder(W, H, 30.0)
+    snapshot = encoder.start(CapturedFrame(0, first, 0))
+    assert snapshot is not None
+    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    try:
+        values = None
+        for i, image in enumerate([first, moved, moved, moved], start=0):
+            packet = encoder.encode(CapturedFrame(i, image, i * 33_333))
+            if packet is not None:
+                values = decoder.decode(decode(bytes(packet)))  # type: ignore[arg-type]
+        assert values is not None
+        rebuilt = decoder.reconstruct(values)
+    finally:
+        decoder.close()
+    cv2.imwrite(str(tmp_path / "rebuilt.png"), np.hstack([moved, rebuilt]))
+    tracker, triangles = LandmarkTracker(), load_canonical().triangles
+    was, now = (
+        face_hull_mask((H, W), tracker.track(img).points, triangles)  # type: ignore[union-attr]
+        for img in (first, moved)
+    )
+    tracker.reset()
+    points = tracker.track(moved).points  # type: ignore[union-attr]
+    centre = points[:, :2].mean(0)
+    ring = cv2.dilate(now.astype(np.uint8), np.ones((41, 41), np.uint8)).astype(bool) & ~now
+    ring[int(centre[1]) :] = False  # above the eyes: hair and forehead edge
+
+    def diff(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
+        return float(np.abs(a.astype(int) - b.astype(int))[where].mean())
+
+    # The hair moved with the head: far closer to the moved picture than the still one is.
+    assert diff(rebuilt, moved, ring) < 0.5 * diff(first, moved, ring)
+    # Where the face was and is no longer, the moved scene shows, not a ghost of the old face.
+    uncovered = was & ~now
+    assert uncovered.sum() > 500
+    assert diff(rebuilt, moved, uncovered) < 0.5 * diff(first, moved, uncovered)
