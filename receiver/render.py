@@ -251,6 +251,7 @@ class FaceRenderer:
 
         rgba, _ = self._renderer.render(self._scene, flags=self._flags)
         self._uploaded = True
+        background: np.ndarray | None
         if background_bgr is not None:
             shape = (self.height, self.width, 3)
             background = _check_uint8_image("background_bgr", background_bgr, shape)
