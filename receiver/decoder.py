@@ -14,6 +14,7 @@ import logging
 import cv2
 import numpy as np
 
+from models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
 from models.face_channels import (
     POSE_ROTATION,
     POSE_SCALE,
@@ -74,7 +75,13 @@ class FaceDecoder:
             )
         self.rig = rig or load_rig()
         self.basis = basis or load_wire_basis()
-        expected = {POSE_ROTATION: 3, POSE_SCALE: 1, POSE_TRANSLATION: 3, WIRE: self.basis.size}
+        expected = {
+            POSE_ROTATION: 3,
+            POSE_SCALE: 1,
+            POSE_TRANSLATION: 3,
+            WIRE: self.basis.size,
+            CAMERA: CAMERA_SIZE,
+        }
         got = {name: size for name, size, _ in snapshot.channels}
         if got != expected:
             raise SnapshotError(f"snapshot channels {got} do not match this receiver's {expected}")
@@ -133,6 +140,12 @@ class FaceDecoder:
         pose = pose_from_channels(floats)
         return pose, self._rest + self.basis.params(floats[WIRE])
 
+    def camera(self, values: FrameValues) -> np.ndarray:
+        """(3, 3) homography of the camera's motion since the snapshot frame."""
+        spec = next(s for s in self.specs if s.name == CAMERA)
+        shift = dequantise(values.values[CAMERA], spec.step)
+        return homography_from_corners(shift, self.background.shape[1], self.background.shape[0])
+
     def image_vertices(self, values: FrameValues) -> np.ndarray:
         """(n, 3) deformed, posed vertices in the sender's image space (pixels)."""
         pose, params = self.parameters(values)
@@ -143,7 +156,7 @@ class FaceDecoder:
         frame, whose surroundings of the head are moved along with the face."""
         vertices = self.image_vertices(values)
         outline = vertices[self._outline, :2]
-        background = self.surround.warp(outline)
+        background = self.surround.warp(outline, self.camera(values))
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))

@@ -31,7 +31,7 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 #: Head ring = face outline scaled about its centre by this much (takes in hair and ears).
-HEAD_REACH = 1.6
+HEAD_REACH = 1.4
 #: Still ring = face outline scaled by this much: the background beyond it does not follow
 #: the head (a spline with only the frame's border held would bend the whole scene).
 STILL_REACH = 2.4

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from models.camera import CAMERA, CAMERA_SIZE, camera_step, corners_from_homography
 from models.face_channels import (
     DEFAULT_ERROR_PX,
     HYSTERESIS,
@@ -39,6 +40,7 @@ from protocol.channels import ChannelEncoder, ChannelSpec
 from protocol.constants import UINT32_MAX
 from protocol.packets import DeltaFrame, KeyFrame, Snapshot
 from protocol.quant import quantise
+from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.landmarks import LandmarkTracker
 from sender.texture import UvRasteriser
@@ -110,6 +112,8 @@ class FaceEncoder:
         self._projector = np.zeros((0, 0))
         self._channels: ChannelEncoder | None = None
         self._last_values: dict[str, np.ndarray] | None = None
+        self.camera: CameraTracker | None = None
+        self._camera_shift = np.zeros(CAMERA_SIZE)
         self.frames_untracked = 0
         self.values_clipped = 0
 
@@ -137,9 +141,17 @@ class FaceEncoder:
         self._projector = self.basis.projector(self.wires.matrix)
         radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
         self.steps = channel_steps(radius, pose.scale, self.error_px)
+        # The background may move twice the face's budget: at 0.5 px its estimate's noise
+        # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
+        self.steps[CAMERA] = camera_step(2 * self.error_px)
         specs = [
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
-        ] + [ChannelSpec(WIRE, self.basis.size, self.steps[WIRE])]
+        ] + [
+            ChannelSpec(WIRE, self.basis.size, self.steps[WIRE]),
+            ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
+        ]
+        self.camera = CameraTracker(frame.image, points[self.canonical.outline, :2])
+        self._camera_shift = np.zeros(CAMERA_SIZE)
         interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
         self._channels = ChannelEncoder(
             specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
@@ -179,6 +191,9 @@ class FaceEncoder:
         base = self.session.mesh.vertices
         pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
         params = self.wires.fit(pose.inverse(points))
+        if self.camera is not None:
+            homography = self.camera.update(image, points[self.canonical.outline, :2])
+            self._camera_shift = corners_from_homography(homography, self.width, self.height)
         return pose, params
 
     def projected(self, params: np.ndarray) -> np.ndarray:
@@ -186,9 +201,11 @@ class FaceEncoder:
         return np.asarray(self._projector @ (params - self.rest_params))
 
     def channel_values(self, pose: Pose, params: np.ndarray) -> dict[str, np.ndarray]:
-        """Float channel values of a pose and wire parameters (before quantisation)."""
+        """Float channel values of a pose and wire parameters (before quantisation), with the
+        camera's motion measured by the last :meth:`analyse`."""
         values = pose_channels(pose)
         values[WIRE] = self.projected(params)
+        values[CAMERA] = self._camera_shift
         return values
 
     def request_keyframe(self) -> None:

@@ -154,10 +154,12 @@ def test_receiver_killed_and_a_new_one_joins_late(tmp_path: Path, keys: Keys) ->
     box = face_box(reference)
     start = 150 - len(video)
     for i, image in enumerate(video[1:], start + 1):
-        assert (
-            mean_abs_diff(image[box], reference[max(s for s in reference if s <= i)][box])
-            < SAME_PICTURE
-        ), i
+        # As in check_pictures: a receiver a frame or two behind shows the previous picture.
+        d = min(
+            mean_abs_diff(image[box], reference[max(s for s in reference if s <= j)][box])
+            for j in range(i - 2, i + 1)
+        )
+        assert d < SAME_PICTURE, (i, d)
 
 
 def test_sender_restarted_as_a_new_session_is_rejoined(tmp_path: Path, keys: Keys) -> None:

@@ -1,0 +1,114 @@
+"""How the camera moved since the snapshot frame, measured on the background.
+
+Corners are picked once in the snapshot frame, away from the person (the head with a wide
+margin, and the body below it). Every frame they are followed straight from the snapshot
+frame (no drift from chaining frame to frame) with pyramidal Lucas-Kanade, starting from where
+the last estimate put them, and a similarity is fitted with RANSAC (sent as a homography, so
+a richer model can come later without a format change). Points that the person now covers
+are left out. With too few good points, or an implausibly large motion, the last estimate is
+kept.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+#: The person is the face outline scaled by this much about its centre, and everything below
+#: that region down to the bottom of the frame.
+PERSON_REACH = 2.6
+MAX_CORNERS = 300
+MIN_INLIERS = 15
+RANSAC_PX = 2.0
+#: No frame corner moves by more than this fraction of the frame's size.
+MAX_SHIFT = 0.15
+#: No frame corner moves by more than this fraction of the frame's size.
+MAX_SHIFT = 0.15
+_LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+
+
+def person_mask(shape: tuple[int, int], outline: np.ndarray) -> np.ndarray:
+    """(h, w) bool: where the person may be, given the face outline (k, 2) in pixels."""
+    h, w = shape
+    centre = outline.mean(0)
+    head = centre + PERSON_REACH * (outline - centre)
+    mask = np.zeros((h, w), np.uint8)
+    hull = cv2.convexHull(head.astype(np.float32)).reshape(-1, 2)
+    cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
+    # The body: below the head region, as wide as it.
+    x0, x1 = int(max(0, head[:, 0].min())), int(min(w, head[:, 0].max() + 1))
+    y0 = int(np.clip(centre[1], 0, h))
+    mask[y0:, x0:x1] = 1
+    return mask.astype(bool)
+
+
+class CameraTracker:
+    """Homography from the snapshot frame to each later frame, from the background.
+
+    image : (h, w, 3) uint8 BGR snapshot frame; outline : (k, 2) face outline in it, pixels
+    """
+
+    def __init__(self, image: np.ndarray, outline: np.ndarray) -> None:
+        self._reference = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        shape = self._reference.shape
+        background = (~person_mask(shape, outline)).astype(np.uint8)
+        side = min(shape)
+        corners = cv2.goodFeaturesToTrack(
+            self._reference,
+            MAX_CORNERS,
+            qualityLevel=0.01,
+            minDistance=max(4, side // 40),
+            mask=background,
+        )
+        self._points = np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2)
+        self.homography = np.eye(3)
+        self.inliers = len(self._points)
+        logger.debug("camera: %d background corners", len(self._points))
+
+    def update(self, image: np.ndarray, outline: np.ndarray | None) -> np.ndarray:
+        """(3, 3) homography taking snapshot-frame pixels of the background to ``image``'s.
+
+        ``outline`` is the face outline in ``image`` (None when no face was found).
+        """
+        if len(self._points) < MIN_INLIERS:
+            return self.homography
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        guess = cv2.perspectiveTransform(self._points[None], self.homography)[0]
+        moved, status, _ = cv2.calcOpticalFlowPyrLK(
+            self._reference,
+            gray,
+            self._points,
+            guess.astype(np.float32).copy(),
+            winSize=(21, 21),
+            maxLevel=3,
+            criteria=_LK_CRITERIA,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        good = status.ravel() == 1
+        if outline is not None:
+            h, w = gray.shape
+            covered = person_mask((h, w), outline)
+            xy = np.clip(np.round(moved).astype(int), 0, [w - 1, h - 1])
+            good &= ~covered[xy[:, 1], xy[:, 0]]
+        if good.sum() < MIN_INLIERS:
+            return self.homography
+        # A similarity (shift, roll, zoom): what a shaking camera does to the scene, and few
+        # enough degrees of freedom that a moving scene seen through a window cannot bend it.
+        found, inlier = cv2.estimateAffinePartial2D(
+            self._points[good], moved[good], method=cv2.RANSAC, ransacReprojThreshold=RANSAC_PX
+        )
+        if found is None or inlier is None or int(inlier.sum()) < MIN_INLIERS:
+            return self.homography
+        homography = np.vstack([found, [0.0, 0.0, 1.0]])
+        h, w = gray.shape
+        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+        shift = (corners @ homography.T)[:, :2] - corners[:, :2]
+        if np.abs(shift).max() > MAX_SHIFT * max(h, w):
+            return self.homography  # implausible for a camera shaking: keep the last one
+        self.homography = homography
+        self.inliers = int(inlier.sum())
+        return self.homography

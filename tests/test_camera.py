@@ -1,0 +1,95 @@
+"""The camera's motion: measured on the background at the sender, sent as corner shifts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from models.camera import (
+    camera_step,
+    corners_from_homography,
+    frame_corners,
+    homography_from_corners,
+)
+from models.face_channels import HYSTERESIS
+from sender.camera_motion import CameraTracker, person_mask
+
+W, H = 352, 288
+FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
+
+
+def test_corner_shifts_round_trip_a_homography() -> None:
+    homography = np.array([[1.01, 0.02, 3.5], [-0.015, 0.99, -2.0], [1e-5, -2e-5, 1.0]])
+    shift = corners_from_homography(homography, W, H)
+    assert shift.shape == (8,)
+    assert np.allclose(homography_from_corners(shift, W, H), homography, atol=1e-6)
+    assert np.allclose(corners_from_homography(np.eye(3), W, H), 0.0)
+    assert frame_corners(W, H).tolist() == [[0, 0], [W - 1, 0], [W - 1, H - 1], [0, H - 1]]
+
+
+def test_a_corner_step_bounds_the_error_inside_the_frame() -> None:
+    # Each corner off by the most the quantiser allows: no pixel inside moves further than
+    # the budget.
+    rng = np.random.default_rng(1)
+    step = camera_step(0.5)
+    limit = (0.5 + HYSTERESIS) * step
+    grid = np.stack(np.meshgrid(np.linspace(0, W - 1, 9), np.linspace(0, H - 1, 9)), -1)
+    points = grid.reshape(1, -1, 2).astype(np.float32)
+    for _ in range(200):
+        error = rng.choice([-limit, limit], 8)  # the worst case: every corner at its limit
+        moved = cv2.perspectiveTransform(points, homography_from_corners(error, W, H))
+        assert np.abs(moved - points).max() <= 0.5  # the budget, along each axis
+
+
+def test_a_bad_corner_vector_is_refused() -> None:
+    with pytest.raises(ValueError, match=r"expected \(8,\) corner displacements, got \(6,\)"):
+        homography_from_corners(np.zeros(6), W, H)
+
+
+def _scene() -> np.ndarray:
+    """A textured scene (the photo tiled and blurred a little) with no face in the middle."""
+    photo = cv2.imread(str(FIXTURE))
+    tiled = np.tile(photo, (2, 2, 1))[: H + 80, : W + 80]
+    return cv2.GaussianBlur(tiled, (3, 3), 0)
+
+
+def _outline() -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    return np.c_[W / 2 + 30 * np.cos(t), 90 + 38 * np.sin(t)]
+
+
+def _view(scene: np.ndarray, motion: np.ndarray, person_shift: float) -> np.ndarray:
+    """The camera's view of ``scene`` moved by ``motion`` (2, 3), with a grey 'person' that
+    moves on its own by ``person_shift`` pixels."""
+    image = cv2.warpAffine(scene, motion, (W, H), borderMode=cv2.BORDER_REFLECT)
+    mask = person_mask((H, W), _outline() + [person_shift, 0.0])
+    image[mask] = (np.arange(mask.sum()) % 97 + 80)[:, None].astype(np.uint8)
+    return image
+
+
+def test_the_camera_shake_is_measured_on_the_background_not_the_person() -> None:
+    scene = _scene()
+    still = np.array([[1.0, 0.0, -40.0], [0.0, 1.0, -40.0]])
+    tracker = CameraTracker(_view(scene, still, 0.0), _outline())
+    angle = np.deg2rad(1.5)
+    for step in range(1, 6):  # the camera drifts and rolls; the person walks the other way
+        shake = still.copy()
+        shake[:, :2] = [[np.cos(angle * step / 5), -np.sin(angle * step / 5)],
+                        [np.sin(angle * step / 5), np.cos(angle * step / 5)]]  # fmt: skip
+        shake[:, 2] += [1.6 * step, -1.0 * step]
+        found = tracker.update(_view(scene, shake, -6.0 * step), _outline() + [-6.0 * step, 0])
+    # Compare in the frame: where the truth and the estimate put the snapshot's pixels.
+    truth = np.vstack([shake, [0, 0, 1]]) @ np.linalg.inv(np.vstack([still, [0, 0, 1]]))
+    grid = frame_corners(W, H)[None].astype(np.float32)
+    error = cv2.perspectiveTransform(grid, found) - cv2.perspectiveTransform(grid, truth)
+    assert np.abs(error).max() < 0.5, error
+    assert np.abs(corners_from_homography(truth, W, H)).max() > 5.0  # it did move
+
+
+def test_a_featureless_scene_keeps_the_camera_still() -> None:
+    flat = np.full((H, W, 3), 128, np.uint8)
+    tracker = CameraTracker(flat, _outline())
+    assert np.array_equal(tracker.update(flat, _outline()), np.eye(3))
