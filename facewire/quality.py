@@ -357,18 +357,22 @@ def track_all(
 
 
 def score_videos(
-    input_path: str | Path, output_path: str | Path, tracker: LandmarkTracker | None = None
+    input_path: str | Path,
+    output_path: str | Path,
+    tracker: LandmarkTracker | None = None,
+    limit: int | None = None,
 ) -> QualityReport:
     """:func:`score_frames` of two video files, the regions tracked in the input.
 
-    Output frames beyond the input's last are ignored.
+    Only the input's first ``limit`` frames are scored (None: all); output frames beyond the
+    last scored input frame are ignored.
     """
     outputs = read_frames(output_path)
     first = next(outputs, None)
     if first is None:
         raise ValueError(f"no frames in {output_path}")
     # Two readers of the input walk in step: tee buffers at most a frame.
-    for_scores, for_tracking = itertools.tee(read_frames(input_path))
+    for_scores, for_tracking = itertools.tee(itertools.islice(read_frames(input_path), limit))
     report = score_frames(
         for_scores, itertools.chain([first], outputs), track_all(for_tracking, tracker)
     )

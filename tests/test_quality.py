@@ -269,5 +269,7 @@ def test_score_videos_on_real_files(tmp_path: Path, face: np.ndarray) -> None:
     assert held.held == 2
     assert held.ssim["face"][:2] == pytest.approx([1.0, 1.0])
     assert held.ssim["face"][3] < held.ssim["face"][2] < 1.0
+    first_two = score_videos(src, short, limit=2)
+    assert first_two.frames == 2 and first_two.held == 0
     with pytest.raises(OSError, match="cannot read video"):
         score_videos(src, tmp_path / "missing.avi")
