@@ -2,7 +2,9 @@
 
 Each frame the model sees a square, upright (roll-corrected) crop of the face. The crop comes
 from the BlazeFace detector on the first frame and after a loss, and from the previous
-frame's landmarks otherwise. Points are mapped back to image space: OpenCV pixel
+frame's landmarks otherwise. Faces too small for the detector's whole-frame pass are looked
+for again in tiles (``sender.detector.TileSearch``), a few tiles per frame, so a video
+finds a face down to ``min_face`` px wide within a few frames at a bounded cost per frame. Points are mapped back to image space: OpenCV pixel
 coordinates of the input frame (x right, y down, pixel centres at integers) and z away
 from the camera in the same pixel scale, relative to the face (its origin is arbitrary).
 """
@@ -16,7 +18,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sender.detector import Detection, FaceDetector, model_path, read_tflite
+from sender.detector import (
+    Detection,
+    FaceDetector,
+    TileSearch,
+    largest_first,
+    model_path,
+    read_tflite,
+)
+from sender.smoothing import LandmarkSmoother
 
 logger = logging.getLogger(__name__)
 
@@ -31,6 +41,19 @@ LEFT_EYE_OUTER = 263
 # for both; the landmark extent excludes the forehead margin the detector box lacks).
 DETECTION_SCALE = 1.5
 LANDMARK_SCALE = 1.5
+# Detections tried with the landmark model per frame before giving up on it (the detector's
+# false positives are turned down by the landmark model's presence score).
+MAX_CANDIDATES = 3
+# A frame whose pixels all lie within this many grey levels shows nothing (e.g. black).
+BLANK_RANGE = 8
+
+#: What :meth:`LandmarkTracker.track` made of the last frame (``LandmarkTracker.state``).
+ACQUIRED = "acquired"  # found by the detector in this frame
+TRACKED = "tracked"  # followed from the previous frame's landmarks
+LOST = "lost"  # followed until the previous frame, gone in this one
+NO_FACE = "none"  # no face found
+BLANK = "blank"  # the frame is one flat colour: nothing to look for
+STATES = (ACQUIRED, TRACKED, LOST, NO_FACE, BLANK)
 
 
 @dataclass(frozen=True)
@@ -99,6 +122,12 @@ def sigmoid(x: float) -> float:
     return float(1.0 / (1.0 + np.exp(-np.clip(x, -100.0, 100.0))))
 
 
+def is_blank(frame_bgr: np.ndarray) -> bool:
+    """True if every pixel (sampled every 4th row and column) lies within ``BLANK_RANGE``."""
+    sample = frame_bgr[::4, ::4]
+    return int(sample.max()) - int(sample.min()) <= BLANK_RANGE
+
+
 class LandmarkTracker:
     """Follows one face from frame to frame and returns its 468 landmarks.
 
@@ -106,6 +135,14 @@ class LandmarkTracker:
     jittered crops: presence logit >= 23.8 and 0.95 px RMS landmark spread with [0, 1],
     against >= 22.9 and 1.13 px with [-1, 1] (both "work"; [0, 1] is the model's own).
     Thread count is whatever the caller set with ``cv2.setNumThreads``.
+
+    With several faces in view it takes the largest one and keeps following that one
+    until it is lost. ``min_face`` (px, landmark width) is the smallest face looked for:
+    faces below the whole-frame pass's reach are searched for in tiles, ``search_budget``
+    tiles per frame while no face is tracked (None: all of them in one frame, for a still
+    image); ``min_face=None`` turns the tile search off. ``smoother`` (optional) filters
+    the returned points over time; the next crop always comes from the unfiltered points.
+    :attr:`state` says what the last frame gave (one of ``STATES``).
     """
 
     def __init__(
@@ -113,16 +150,25 @@ class LandmarkTracker:
         path: str | Path | None = None,
         detector: FaceDetector | None = None,
         min_presence: float = 0.5,
+        min_face: float | None = 48.0,
+        search_budget: int | None = 4,
+        smoother: LandmarkSmoother | None = None,
     ) -> None:
         self.path = Path(path) if path is not None else model_path("face_landmark.tflite")
         self.net = read_tflite(self.path)
         self.detector = detector if detector is not None else FaceDetector()
         self.min_presence = min_presence
+        self.search = TileSearch(self.detector, min_face) if min_face is not None else None
+        self.search_budget = search_budget
+        self.smoother = smoother
+        self.state = NO_FACE
         self._crop: Crop | None = None
 
     def reset(self) -> None:
         """Forget the face: the next frame runs the detector."""
         self._crop = None
+        if self.search is not None:
+            self.search.restart()
 
     @property
     def crop(self) -> Crop | None:
@@ -153,25 +199,66 @@ class LandmarkTracker:
         out[:, 2] = pts[:, 2] * (crop.size / INPUT_SIZE)
         return Landmarks(out, sigmoid(float(logit.ravel()[0])))
 
-    def track(self, frame_bgr: np.ndarray) -> Landmarks | None:
+    def _verify(self, frame_bgr: np.ndarray, dets: list[Detection]) -> Landmarks | None:
+        """Landmarks of the face to follow among the detector's candidates, or None.
+
+        The ``MAX_CANDIDATES`` best-scoring candidates go through the landmark model, whose
+        presence score turns down the detector's false positives; of those it accepts, the
+        largest face is taken (``largest_first``).
+        """
+        found: list[tuple[Detection, Landmarks]] = []
+        for det in sorted(dets, key=lambda d: -d.score)[:MAX_CANDIDATES]:
+            lm = self.run_crop(frame_bgr, crop_from_detection(det))
+            if lm.presence >= self.min_presence:
+                found.append((det, lm))
+            else:
+                logger.debug("candidate at %s turned down: presence %.3f", det.centre, lm.presence)
+        if not found:
+            return None
+        h, w = frame_bgr.shape[:2]
+        chosen = largest_first([d for d, _ in found], w, h)[0]
+        return next(lm for d, lm in found if d is chosen)
+
+    def _acquire(self, frame_bgr: np.ndarray) -> Landmarks | None:
+        """A face in a frame with none tracked: the detector on the whole frame, and when
+        that gives nothing, the next tiles of the small-face search."""
+        lm = self._verify(frame_bgr, self.detector.detect(frame_bgr))
+        if lm is None and self.search is not None:
+            lm = self._verify(frame_bgr, self.search.scan(frame_bgr, self.search_budget))
+        return lm
+
+    def track(self, frame_bgr: np.ndarray, timestamp_s: float | None = None) -> Landmarks | None:
         """Landmarks of the face in ``frame_bgr`` ((h, w, 3) uint8 BGR), or None if none.
 
-        After a None the next call runs the detector again.
+        After a None the next call looks for a face again. ``timestamp_s`` (seconds, any
+        origin) times the frame for the smoother; None means one frame after the last.
         """
         if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3 or frame_bgr.dtype != np.uint8:
             raise ValueError(
                 f"expected (h, w, 3) uint8 BGR frame, got {frame_bgr.shape} {frame_bgr.dtype}"
             )
-        crop = self._crop
-        if crop is None:
-            dets = self.detector.detect(frame_bgr)
-            if not dets:
-                return None
-            crop = crop_from_detection(dets[0])
-        lm = self.run_crop(frame_bgr, crop)
-        if lm.presence < self.min_presence:
-            logger.debug("face lost: presence %.3f < %.3f", lm.presence, self.min_presence)
-            self._crop = None
+        if is_blank(frame_bgr):
+            self.reset()
+            self.state = BLANK
+            return None
+        lm: Landmarks | None = None
+        was_tracking = self._crop is not None
+        if self._crop is not None:
+            lm = self.run_crop(frame_bgr, self._crop)
+            self.state = TRACKED
+            if lm.presence < self.min_presence:
+                logger.debug("face lost: presence %.3f < %.3f", lm.presence, self.min_presence)
+                self.reset()
+                lm = None
+        if lm is None:
+            # Also right after a loss: a face that jumped out of the crop is found at once.
+            lm = self._acquire(frame_bgr)
+            self.state = ACQUIRED if lm is not None else LOST if was_tracking else NO_FACE
+        if lm is None:
             return None
         self._crop = crop_from_points(lm.points)
+        if self.smoother is not None:
+            if self.state == ACQUIRED:
+                self.smoother.reset()
+            lm = Landmarks(self.smoother(lm.points, timestamp_s), lm.presence)
         return lm
