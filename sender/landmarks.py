@@ -4,9 +4,11 @@ Each frame the model sees a square, upright (roll-corrected) crop of the face. T
 from the BlazeFace detector on the first frame and after a loss, and from the previous
 frame's landmarks otherwise. Faces too small for the detector's whole-frame pass are looked
 for again in tiles (``sender.detector.TileSearch``), a few tiles per frame, so a video
-finds a face down to ``min_face`` px wide within a few frames at a bounded cost per frame. Points are mapped back to image space: OpenCV pixel
-coordinates of the input frame (x right, y down, pixel centres at integers) and z away
-from the camera in the same pixel scale, relative to the face (its origin is arbitrary).
+finds a face down to ``min_face`` px wide within a few frames at a bounded cost per frame.
+
+Points are mapped back to image space: OpenCV pixel coordinates of the input frame (x right,
+y down, pixel centres at integers) and z away from the camera in the same pixel scale,
+relative to the face (its origin is arbitrary).
 """
 
 from __future__ import annotations
