@@ -266,7 +266,7 @@ def tile_grid(width: int, height: int, min_face: float = 48.0) -> list[tuple[int
     levels = [min_face / TILE_FACE_FRACTION]
     while TILE_FACE_MAX * levels[-1] < whole_frame_min and 2 * levels[-1] < big:
         levels.append(2 * levels[-1])
-    tiles = []
+    tiles: list[tuple[int, int, int]] = []
     for side in reversed(levels):
         s = int(round(side))
         tiles.extend((x, y, s) for y in _starts(height, s) for x in _starts(width, s))
