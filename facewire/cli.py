@@ -54,10 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
     _add_demo(sub)
-    from facewire import keys, wirestool
+    from facewire import keys, track, wirestool
 
     wirestool.add_parser(sub)
     keys.add_parser(sub)
+    track.add_parser(sub)
     return parser
 
 
