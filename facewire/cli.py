@@ -31,6 +31,11 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
         default="demo-compare.mp4",
         help="input and reconstruction side by side",
     )
+    p.add_argument(
+        "--sheet",
+        metavar="FILE.png",
+        help="contact sheet: six frames as input, reconstruction and a heat map of the difference",
+    )
     p.add_argument("--stats", metavar="FILE.json", help="write the call's statistics as JSON")
     p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
     p.add_argument(

@@ -21,6 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from facewire.sheet import write_contact_sheet
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
 from protocol.keys import write_keypair
@@ -74,11 +75,14 @@ def run_demo(args: argparse.Namespace) -> int:
     video = VideoSource(source, realtime=not args.fast)
     with video, tempfile.TemporaryDirectory() as tmp:
         # A camera cannot be read twice: keep what was sent for the side-by-side video.
-        sent = Path(tmp) / "input.mp4" if video.is_camera and args.compare else None
+        keep = video.is_camera and (args.compare or args.sheet)
+        sent = Path(tmp) / "input.mp4" if keep else None
         stats = _call(video, args, sent, Path(tmp))
+        reference = sent or Path(source)
         if args.compare:
-            reference = sent or Path(source)
             _write_compare(reference, Path(args.output), Path(args.compare), stats["frames_out"])
+        if args.sheet:
+            write_contact_sheet(reference, Path(args.output), Path(args.sheet), stats["frames_out"])
     stats["input"] = video.name
     _print_summary(stats, args)
     if args.stats:
@@ -215,4 +219,5 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
         f"sender {stats['sender_fps']:.0f} fps, receiver {stats['receiver_fps']:.0f} fps, "
         f"latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms"
     )
-    print(f"wrote {args.output}" + (f" and {args.compare}" if args.compare else ""))
+    written = [str(p) for p in (args.output, args.compare, args.sheet) if p]
+    print("wrote " + ", ".join(written))
