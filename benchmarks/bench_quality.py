@@ -54,14 +54,18 @@ def check_imports(code: Path) -> None:
     """Fail unless the call's packages come from ``code`` (not this checkout)."""
     names = ", ".join(PACKAGES)
     probe = f"import {names}\nfor m in ({names}): print(m.__file__)"
-    files = subprocess.run(
+    done = subprocess.run(
         [sys.executable, "-c", probe],
         cwd=code,
         env=_env(code),
-        check=True,
+        check=False,
         capture_output=True,
         text=True,
-    ).stdout.split()
+    )
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["?"])[-1]
+        raise SystemExit(f"--code {code}: cannot import the call's packages: {last}")
+    files = done.stdout.split()
     root = code.resolve()
     stray = [f for f in files if root not in Path(f).resolve().parents]
     if stray or len(files) != len(PACKAGES):
