@@ -161,12 +161,19 @@ def _receive_session(
             if newest is not None:
                 start = time.perf_counter()
                 report.frames_held += _hold(recorder, last, newest.seq - next_seq)
-                if last is None:
-                    report.first_frame_s.append(time.monotonic() - started)
                 if stale_from is not None:
                     report.freezes.append((stale_from, newest.seq - stale_from))
                     stale_from = None
-                last = _fit(decoder.reconstruct(newest), recorder.size)
+                picture = _fit(decoder.reconstruct(newest), recorder.size)
+                if last is None:
+                    report.first_frame_s.append(time.monotonic() - started)
+                    # Frames of the session's first second that came before its first
+                    # decodable packet show that first picture, so the recording stays
+                    # aligned; a late joiner's recording starts where it joined.
+                    early = newest.seq - next_seq
+                    if early <= snapshot.fps:
+                        report.frames_held += _hold(recorder, picture, early)
+                last = picture
                 report.latency_ms.append((now_us() - newest.capture_us) / 1000.0)
                 recorder.write(last)
                 report.busy_s += time.perf_counter() - start

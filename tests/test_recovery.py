@@ -194,3 +194,21 @@ def test_lost_sender_is_detected_by_missing_heartbeats(tmp_path: Path, keys: Key
     report = receiver.report()
     assert report["ended_by"] == "peer lost"
     assert report["frames_out"] > 0
+
+
+def test_packets_lost_before_the_first_picture_keep_the_recording_aligned(
+    tmp_path: Path, keys: Keys
+) -> None:
+    snapshot, link, report, video = lossy_call(tmp_path, keys, lambda seq: seq < 6)
+    assert link.lost == list(range(6))
+    # Frame i of the recording is still frame i: the first six show the first picture.
+    assert len(video) == report["frames_out"] == FRAMES
+    reference = reference_frames(snapshot, link.sent)
+    box = face_box(reference)
+    sent = sorted(reference)
+    for i in (10, 100, FRAMES - 1):
+        d = min(
+            mean_abs_diff(video[i][box], reference[max(s for s in sent if s <= j)][box])
+            for j in range(max(sent[0], i - LAG), i + 1)
+        )
+        assert d < SAME_PICTURE, (i, d)
