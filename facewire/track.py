@@ -158,10 +158,11 @@ def draw(image: np.ndarray, state: str, lm: Landmarks | None, pose: Pose | None)
     out = image.copy()
     h, w = out.shape[:2]
     unit = max(1, round(max(h, w) / 640))
+    dot = unit if max(h, w) >= 400 else 0  # one-pixel dots on small frames
     if lm is not None:
         colour = STATE_COLOURS.get(state, (255, 255, 255))
         for x, y in np.round(lm.points[:, :2]).astype(int):
-            cv2.circle(out, (int(x), int(y)), unit, colour, -1, cv2.LINE_AA)
+            cv2.circle(out, (int(x), int(y)), dot, colour, -1, cv2.LINE_AA)
     if pose is not None:
         canonical = load_canonical().vertices
         base = canonical[NOSE_TIP]

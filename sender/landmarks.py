@@ -46,6 +46,11 @@ LANDMARK_SCALE = 1.5
 # Detections tried with the landmark model per frame before giving up on it (the detector's
 # false positives are turned down by the landmark model's presence score).
 MAX_CANDIDATES = 3
+# For this many frames after a loss only a face where the lost one was is taken back (so a
+# second person in view does not take over while the first looks away for a moment);
+# "where" is within this fraction of the last crop's side, at half to twice its size.
+REACQUIRE_FRAMES = 15
+REACQUIRE_DISTANCE = 0.5
 # A frame whose pixels all lie within this many grey levels shows nothing (e.g. black).
 BLANK_RANGE = 8
 
@@ -139,7 +144,8 @@ class LandmarkTracker:
     Thread count is whatever the caller set with ``cv2.setNumThreads``.
 
     With several faces in view it takes the largest one and keeps following that one
-    until it is lost. ``min_face`` (px, landmark width) is the smallest face looked for:
+    until it is lost; for ``REACQUIRE_FRAMES`` frames after a loss it takes back only a
+    face where the lost one was. ``min_face`` (px, landmark width) is the smallest face looked for:
     faces below the whole-frame pass's reach are searched for in tiles, ``search_budget``
     tiles per frame while no face is tracked (None: all of them in one frame, for a still
     image); ``min_face=None`` turns the tile search off. ``smoother`` (optional) filters
@@ -165,12 +171,29 @@ class LandmarkTracker:
         self.smoother = smoother
         self.state = NO_FACE
         self._crop: Crop | None = None
+        self._last: Crop | None = None  # where the face was last seen
+        self._since_lost = 0  # frames since it was lost
 
     def reset(self) -> None:
-        """Forget the face: the next frame runs the detector."""
+        """Forget the face: the next frame runs the detector and may take any face."""
+        self._drop()
+        self._last = None
+
+    def _drop(self) -> None:
+        """The face is lost: look for one again, first where it was."""
+        if self._crop is not None:
+            self._last, self._since_lost = self._crop, 0
         self._crop = None
         if self.search is not None:
             self.search.restart()
+
+    def _near_last(self, det: Detection) -> bool:
+        last = self._last
+        if last is None:
+            return True
+        face = last.size / LANDMARK_SCALE
+        close = np.linalg.norm(det.centre - last.centre) <= REACQUIRE_DISTANCE * last.size
+        return bool(close and 0.5 * face <= det.size <= 2.0 * face)
 
     @property
     def crop(self) -> Crop | None:
@@ -215,6 +238,10 @@ class LandmarkTracker:
                 found.append((det, lm))
             else:
                 logger.debug("candidate at %s turned down: presence %.3f", det.centre, lm.presence)
+        if found and self._last is not None and self._since_lost <= REACQUIRE_FRAMES:
+            found = [(d, lm) for d, lm in found if self._near_last(d)]
+            if not found:
+                logger.debug("waiting for the lost face: %d frames", self._since_lost)
         if not found:
             return None
         h, w = frame_bgr.shape[:2]
@@ -239,8 +266,9 @@ class LandmarkTracker:
             raise ValueError(
                 f"expected (h, w, 3) uint8 BGR frame, got {frame_bgr.shape} {frame_bgr.dtype}"
             )
+        self._since_lost += 1
         if is_blank(frame_bgr):
-            self.reset()
+            self._drop()
             self.state = BLANK
             return None
         lm: Landmarks | None = None
@@ -250,7 +278,7 @@ class LandmarkTracker:
             self.state = TRACKED
             if lm.presence < self.min_presence:
                 logger.debug("face lost: presence %.3f < %.3f", lm.presence, self.min_presence)
-                self.reset()
+                self._drop()
                 lm = None
         if lm is None:
             # Also right after a loss: a face that jumped out of the crop is found at once.

@@ -21,11 +21,12 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-# Chosen on the bundled clip against its truth and on akiyo's still frames (BENCHMARKS.md,
-# "Tracking real faces"); the held-out carphone clip was only measured.
-MIN_CUTOFF_HZ = 1.5
-BETA = 0.6
-D_CUTOFF_HZ = 1.0
+# Chosen with benchmarks/bench_smoothing.py (BENCHMARKS.md, "Tracking real faces"): about
+# half the jitter on still faces, at most half a frame of lag on the fastest moves. A lower
+# beta or cutoff removes more jitter but lags a frame or more; a higher beta removes little.
+MIN_CUTOFF_HZ = 1.0
+BETA = 3.0
+D_CUTOFF_HZ = 5.0
 
 
 def alpha(cutoff_hz: np.ndarray | float, dt: float) -> np.ndarray:
