@@ -1,8 +1,11 @@
 """ZeroMQ transport: the ZeroMQ Guide's "Clone" pattern with a back channel, over CURVE.
 
-The sender binds a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, and a new
+The sender has a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, and a new
 Snapshot) and a ROUTER socket (snapshot requests and the back channel: KeyframeRequest,
-ReceiverStats, probes). A receiver connects a SUB and a DEALER socket.
+ReceiverStats, probes); a receiver has a SUB and a DEALER socket. By default the sender binds and
+the receiver connects; either side may take the other role (``SenderEndpoint(connect=True)``
+with ``ReceiverEndpoint(bind=True)``), which changes nothing above the sockets: the sender stays
+the CURVE server, the subscription and the handshake run the same way.
 
 Security: by default every socket uses CURVE. The sender's PUB and ROUTER are CURVE servers with
 the sender's secret key, and a ZAP handler admits only the clients whose public keys it was
@@ -136,6 +139,30 @@ def _bind(sock: zmq.Socket[bytes], host: str, port: int) -> int:
     endpoint = sock.getsockopt(zmq.LAST_ENDPOINT)
     assert isinstance(endpoint, bytes)
     return int(endpoint.rsplit(b":", 1)[1])
+
+
+def _attach(
+    sockets: list[zmq.Socket[bytes]], host: str, ports: tuple[int, int], bind: bool, side: str
+) -> tuple[int, int]:
+    """Bind (port 0: any free port) or connect each socket to its port; the ports used.
+
+    A connect names a peer: it needs real ports, and libzmq only checks the host later (an
+    unknown host just never answers), so both are checked here.
+    """
+    if bind:
+        try:
+            return (_bind(sockets[0], host, ports[0]), _bind(sockets[1], host, ports[1]))
+        except zmq.ZMQError as exc:
+            raise TransportError(f"{side}: cannot bind on {host} ports {ports}: {exc}") from exc
+    for port in ports:
+        if not 1 <= port <= 65535:
+            raise TransportError(f"{side}: cannot connect to port {port} (expected 1..65535)")
+    for sock, port in zip(sockets, ports, strict=True):
+        try:
+            sock.connect(f"tcp://{host}:{port}")
+        except zmq.ZMQError as exc:
+            raise TransportError(f"{side}: cannot connect to {host}:{port}: {exc}") from exc
+    return ports
 
 
 def _ms(seconds: float) -> int:
@@ -273,6 +300,9 @@ class SenderEndpoint(_Endpoint):
     ``secret_key_file`` is the sender's ``.key_secret`` file; ``allowed_keys`` is a directory
     of the receivers' public ``.key`` files, or a list of such files. Without them, pass
     ``plain=True`` for unencrypted, unauthenticated sockets.
+
+    ``connect=True`` connects both sockets to a receiver that binds (``bind_host`` is then the
+    receiver's host and both ports must be given); the sender is still the CURVE server.
     """
 
     def __init__(
@@ -286,6 +316,7 @@ class SenderEndpoint(_Endpoint):
         secret_key_file: KeyFile | None = None,
         allowed_keys: KeyFile | Iterable[KeyFile] | None = None,
         plain: bool = False,
+        connect: bool = False,
     ) -> None:
         has_keys = secret_key_file is not None or allowed_keys is not None
         _check_mode(plain, has_keys, "sender", "secret_key_file, allowed_keys")
@@ -312,13 +343,13 @@ class SenderEndpoint(_Endpoint):
                     sock.setsockopt(zmq.CURVE_SECRETKEY, keys.secret)
                     sock.setsockopt(zmq.CURVE_PUBLICKEY, keys.public)
                     sock.setsockopt(zmq.ZAP_DOMAIN, self._zap_domain.encode())
-            self._ports = (
-                _bind(self._pub, bind_host, pub_port),
-                _bind(self._router, bind_host, snapshot_port),
+            self._ports = _attach(
+                [self._pub, self._router],
+                bind_host,
+                (pub_port, snapshot_port),
+                bind=not connect,
+                side="sender",
             )
-        except zmq.ZMQError as exc:
-            self.close()
-            raise TransportError(f"cannot bind on {bind_host}: {exc}") from exc
         except BaseException:
             self.close()
             raise
@@ -337,11 +368,14 @@ class SenderEndpoint(_Endpoint):
         #: PROBE_INTERVAL_MS ago.
         self.probes_unanswered = 0
         mode = "plain" if plain else f"CURVE, {len(allowed)} allowed keys"
-        logger.info("sender: PUB and ROUTER on %s, ports %s (%s)", bind_host, self._ports, mode)
+        how = "connected to" if connect else "bound on"
+        logger.info(
+            "sender: PUB and ROUTER %s %s, ports %s (%s)", how, bind_host, self._ports, mode
+        )
 
     @property
     def ports(self) -> tuple[int, int]:
-        """(pub_port, snapshot_port) actually bound."""
+        """(pub_port, snapshot_port) bound, or connected to."""
         return self._ports
 
     def _release(self) -> None:
@@ -514,6 +548,9 @@ class ReceiverEndpoint(_Endpoint):
     ``clock`` (seconds, monotonic) times peer liveness. ``secret_key_file`` is the receiver's
     own ``.key_secret`` file (its public key must be among the sender's allowed keys) and
     ``server_key_file`` the sender's public ``.key`` file. Without them, pass ``plain=True``.
+
+    ``bind=True`` binds both sockets on ``host`` (``"*"``: every interface; port 0: any free
+    port, see :attr:`ports`) for a sender that connects; the receiver is still the CURVE client.
     """
 
     def __init__(
@@ -527,6 +564,7 @@ class ReceiverEndpoint(_Endpoint):
         secret_key_file: KeyFile | None = None,
         server_key_file: KeyFile | None = None,
         plain: bool = False,
+        bind: bool = False,
     ) -> None:
         has_keys = secret_key_file is not None or server_key_file is not None
         _check_mode(plain, has_keys, "receiver", "secret_key_file, server_key_file")
@@ -540,8 +578,6 @@ class ReceiverEndpoint(_Endpoint):
             keys = load_keypair(secret_key_file)
             server_key = load_public_key(server_key_file)
         super().__init__(context, clock)
-        self._pub_address = f"tcp://{host}:{pub_port}"
-        self._snapshot_address = f"tcp://{host}:{snapshot_port}"
         self._sub = _socket(self._context, zmq.SUB, UPDATE_HWM, UPDATE_HWM)
         self._dealer = _socket(self._context, zmq.DEALER, BACK_CHANNEL_HWM, SNAPSHOT_HWM)
         self._sockets = [self._sub, self._dealer]
@@ -558,10 +594,20 @@ class ReceiverEndpoint(_Endpoint):
         self._poller = zmq.Poller()
         self._poller.register(self._sub, zmq.POLLIN)
         self._poller.register(self._monitors[0], zmq.POLLIN)
-        # Subscribe first (Clone pattern), then connect the request socket.
+        # Subscribe first (Clone pattern), then attach the request socket.
         self._sub.setsockopt(zmq.SUBSCRIBE, b"")
-        self._sub.connect(self._pub_address)
-        self._dealer.connect(self._snapshot_address)
+        try:
+            self._ports = _attach(
+                [self._sub, self._dealer], host, (pub_port, snapshot_port), bind, "receiver"
+            )
+        except BaseException:
+            self.close()
+            raise
+        where = "on" if bind else "from"
+        self._pub_address = f"tcp://{host}:{self._ports[0]}"
+        self._snapshot_address = f"tcp://{host}:{self._ports[1]}"
+        self._pub_where = f"{where} {self._pub_address}"
+        self._snapshot_where = f"{where} {self._snapshot_address}"
         self.snapshot: Snapshot | None = None
         #: The last failed CURVE/ZMTP handshake with the sender, in words (None if none).
         self.handshake_error: str | None = None
@@ -570,6 +616,11 @@ class ReceiverEndpoint(_Endpoint):
         self._last_heard = clock()
         self._last_seq = 0
         self._bye = False
+
+    @property
+    def ports(self) -> tuple[int, int]:
+        """(pub_port, snapshot_port) connected to, or bound."""
+        return self._ports
 
     @property
     def peer_alive(self) -> bool:
@@ -600,7 +651,7 @@ class ReceiverEndpoint(_Endpoint):
             if remaining <= 0:
                 self._read_events()
                 raise TransportError(
-                    f"no published packet from {self._pub_address} within {timeout_ms} ms "
+                    f"no published packet {self._pub_where} within {timeout_ms} ms "
                     f"(is the sender running?){self._handshake_hint()}"
                 )
             self._send(self._probe())
@@ -614,7 +665,7 @@ class ReceiverEndpoint(_Endpoint):
             if remaining <= 0:
                 self._read_events()
                 raise TransportError(
-                    f"no snapshot from {self._snapshot_address} within {timeout_ms} ms"
+                    f"no snapshot {self._snapshot_where} within {timeout_ms} ms"
                     f"{self._handshake_hint()}"
                 )
             if now >= next_request:
