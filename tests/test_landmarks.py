@@ -8,8 +8,17 @@ import cv2
 import numpy as np
 import pytest
 
-from sender.detector import FaceDetector, ssd_anchors
-from sender.landmarks import Crop, LandmarkTracker, crop_from_points
+from sender.detector import Detection, FaceDetector, largest_first, ssd_anchors, tile_grid
+from sender.landmarks import (
+    ACQUIRED,
+    BLANK,
+    LOST,
+    NO_FACE,
+    TRACKED,
+    Crop,
+    LandmarkTracker,
+    crop_from_points,
+)
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 
@@ -188,16 +197,71 @@ def test_blank_and_noise_give_none(tracker: LandmarkTracker) -> None:
         assert tracker.crop is None
 
 
-def test_loss_then_redetect(face: np.ndarray, tracker: LandmarkTracker) -> None:
+def test_loss_then_redetect(face: np.ndarray, detector: CountingDetector) -> None:
+    # Whole-frame detections only (the tile search would count its tiles too).
+    tracker = LandmarkTracker(detector=detector, min_face=None)
     assert tracker.track(face) is not None
     assert tracker.crop is not None and tracker.detector is not None
     calls = tracker.detector.calls  # type: ignore[attr-defined]
-    # The crop from the face's last position is fed a blank frame: presence must drop.
-    assert tracker.track(np.zeros_like(face)) is None
-    assert tracker.crop is None
-    assert tracker.detector.calls == calls  # type: ignore[attr-defined]
-    assert tracker.track(face) is not None
+    # The crop from the face's last position is fed a frame with no face (not a flat one):
+    # presence must drop, and the detector looks at once in the same frame.
+    no_face = cv2.GaussianBlur(face, (0, 0), 25)
+    assert tracker.track(no_face) is None
+    assert tracker.state == LOST and tracker.crop is None
     assert tracker.detector.calls == calls + 1  # type: ignore[attr-defined]
+    assert tracker.track(no_face) is None and tracker.state == NO_FACE
+    assert tracker.track(face) is not None and tracker.state == ACQUIRED
+    assert tracker.detector.calls == calls + 3  # type: ignore[attr-defined]
+    assert tracker.track(face) is not None and tracker.state == TRACKED
+    assert tracker.detector.calls == calls + 3  # type: ignore[attr-defined]
+
+
+def test_flat_frame_is_blank_without_detection(face: np.ndarray, tracker: LandmarkTracker) -> None:
+    assert tracker.track(face) is not None
+    calls = tracker.detector.calls  # type: ignore[attr-defined]
+    for value in (0, 255, 93):
+        assert tracker.track(np.full((480, 640, 3), value, np.uint8)) is None
+        assert tracker.state == BLANK and tracker.crop is None
+    assert tracker.detector.calls == calls  # type: ignore[attr-defined]
+    # Camera noise on black is not flat: the detector runs and finds nothing.
+    rng = np.random.default_rng(2)
+    dark = rng.integers(0, 30, (480, 640, 3), dtype=np.uint8)
+    assert tracker.track(dark) is None and tracker.state == NO_FACE
+
+
+def det(x: float, y: float, size: float, score: float) -> Detection:
+    box = np.array([x - size / 2, y - size / 2, x + size / 2, y + size / 2])
+    return Detection(box, np.zeros((6, 2)), score)
+
+
+def test_largest_face_first() -> None:
+    small_sure, big_unsure = det(100, 100, 60, 0.99), det(500, 300, 120, 0.6)
+    assert largest_first([small_sure, big_unsure], 640, 480) == [big_unsure, small_sure]
+    # Within 15 % of each other's size they count as equal: nearest the centre first.
+    near, far = det(330, 250, 100, 0.7), det(600, 50, 110, 0.99)
+    assert largest_first([far, near], 640, 480) == [near, far]
+    assert largest_first([]) == []
+
+
+@pytest.mark.parametrize(("w", "h"), [(640, 480), (641, 481), (1920, 1080), (3840, 2160)])
+def test_tiles_cover_every_small_face(w: int, h: int) -> None:
+    tiles = tile_grid(w, h, 48.0)
+    assert tiles and all(0 <= x and 0 <= y and x < w and y < h for x, y, _ in tiles)
+    assert all(x + s <= w or x == 0 for x, _, s in tiles)
+    assert all(y + s <= h or y == 0 for _, y, s in tiles)
+    # Any face from 48 px to the whole-frame pass's reach, anywhere, lies wholly inside a
+    # tile it fills at least 14 % of and at most 45 % of (its box: 1.1 x its width).
+    rng = np.random.default_rng(0)
+    t = np.array(tiles, dtype=np.float64)
+    for _ in range(300):
+        f = rng.uniform(48.0, 0.16 * max(w, h))
+        b = 1.1 * f
+        x, y = rng.uniform(0, w - b), rng.uniform(0, h - b)
+        inside = (t[:, 0] <= x) & (t[:, 1] <= y)
+        inside &= (x + b <= t[:, 0] + t[:, 2]) & (y + b <= t[:, 1] + t[:, 2])
+        fits = inside & (f >= 0.14 * t[:, 2]) & (f <= 0.45 * t[:, 2])
+        assert fits.any(), (f, x, y)
+    assert tile_grid(176, 144) == []  # small frames: the whole-frame pass sees 48 px faces
 
 
 def test_slowly_moving_face_stays_locked(
