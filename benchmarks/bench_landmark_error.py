@@ -12,7 +12,8 @@ Each photo is tracked as ``facewire track`` does a still image (``track_still``:
 detector's crop, then twice the crop from the landmarks). The inner-face points (the 51 iBUG
 points 17-67: brows, nose, eyes, mouth; not the jaw line) are compared with the MediaPipe
 vertices that mark the same places (``IBUG_TO_MEDIAPIPE``, picked on the canonical mesh by
-anatomy, not fitted to these photos), normalised by the inter-ocular distance (outer eye corners, iBUG 36 and 45), as on 300-W.
+anatomy, not fitted to these photos), normalised by the inter-ocular distance (outer eye
+corners, iBUG 36 and 45), as on 300-W.
 """
 
 from __future__ import annotations
