@@ -121,7 +121,9 @@ class ChannelEncoder(_Codec):
     """The sender's half: integer channel values in, frame packets out.
 
     ``session_id`` goes into keyframes; ``frame_us`` is the nominal frame interval that
-    predicts capture times.
+    predicts capture times. :attr:`coded_bits` adds up, for measuring, the information coded
+    in frame bodies: per channel in delta frames, ``"step and time"`` of delta frames, and
+    ``"keyframes"`` (whole keyframe bodies), in bits before rounding to bytes.
     """
 
     def __init__(
@@ -138,6 +140,10 @@ class ChannelEncoder(_Codec):
         self.keyframe_interval = keyframe_interval
         self._key_requested = True
         self._last_key_seq = 0
+        self.coded_bits: dict[str, float] = {}
+
+    def _count(self, what: str, bits: float) -> None:
+        self.coded_bits[what] = self.coded_bits.get(what, 0.0) + bits
 
     def request_keyframe(self) -> None:
         """Make the next frame a keyframe (a receiver asked, or a new one joined)."""
@@ -189,10 +195,13 @@ class ChannelEncoder(_Codec):
         enc = Encoder()
         encode_uint(enc, step - 1, self._ctx.seq_step)
         encode_sint(enc, residual_ms, self._ctx.time)
+        self._count("step and time", enc.bits)
         for spec in self.specs:
             ctx = self._ctx.delta[spec.name]
+            start = enc.bits
             for i, r in enumerate(residuals[spec.name].tolist()):
                 encode_sint(enc, r, ctx[i])
+            self._count(spec.name, enc.bits - start)
         self._counter = (self._counter + 1) % COUNTER_MOD
         packet = DeltaFrame(self._counter, enc.finish())
         self.last = FrameValues(seq, predicted + 1000 * residual_ms, vals)
@@ -207,6 +216,7 @@ class ChannelEncoder(_Codec):
             ctx = self._ctx.key[spec.name]
             for v in vals[spec.name].tolist():
                 encode_sint(enc, v, ctx)
+        self._count("keyframes", enc.bits)
         self._counter = (self._counter + 1) % COUNTER_MOD
         packet = KeyFrame(self._counter, self.session_id, seq, capture_us, enc.finish())
         self._key_requested = False

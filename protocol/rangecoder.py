@@ -25,6 +25,7 @@ which context codes which bit is the caller's choice, carried by :class:`IntCont
 from __future__ import annotations
 
 import logging
+import math
 
 logger = logging.getLogger(__name__)
 
@@ -85,6 +86,13 @@ class Encoder:
             self._out[i] = 0
             i -= 1
         self._out[i] += 1
+
+    @property
+    def bits(self) -> float:
+        """Information coded so far, in bits (-log2 of the probability of every symbol):
+        bytes written plus what the interval has narrowed since. For measuring only; the
+        finished body rounds it up to whole bytes."""
+        return 8 * len(self._out) + 32 - math.log2(self._range)
 
     def encode_bit(self, bit: int, ctx: Context) -> None:
         """Code ``bit`` with the adaptive probability of ``ctx``, then adapt it."""

@@ -50,6 +50,22 @@ def test_round_trip_through_bytes_is_exact() -> None:
         assert shown == sent
 
 
+def test_coded_bits_account_for_the_bodies() -> None:
+    # What the encoder reports per channel adds up to the bodies it wrote, less their
+    # rounding to whole bytes (under a byte a packet).
+    enc = encoder(interval=50)
+    body_bits, packets = 0, 0
+    for seq, t, values in stream(200):
+        packet, _ = enc.encode(seq, t, values)
+        if packet is not None:
+            body_bits += 8 * len(packet.body)
+            packets += 1
+    coded = enc.coded_bits
+    assert set(coded) == {"keyframes", "step and time", "pose", "wire"}
+    assert coded["wire"] > coded["pose"] > 0  # 8 values against 3, moving alike
+    assert -packets <= body_bits - sum(coded.values()) <= 8 * packets
+
+
 def test_keyframes_on_interval_and_request() -> None:
     enc = encoder(interval=10)
     kinds = []
