@@ -1,17 +1,26 @@
-"""Geometry bit rate and the error its quantisation adds, on a clip (no network, no render).
+"""Geometry bit rate and the error its coding adds, on a clip (no network, no render).
 
-Usage: python benchmarks/bench_geometry.py [--input CLIP] [--error-px E] [--frames N]
+Usage: python benchmarks/bench_geometry.py [--input CLIP] [--error-px E ...] [--frames N]
+       [--no-smoothing]
 
 Runs the sender's encoder over every frame and decodes every packet as the receiver would.
-Prints, at the clip's frame rate:
+Frames are stamped with their nominal capture times (frame index / fps), as a call paced at
+the clip's frame rate stamps them; reading as fast as possible would make every frame look
+33 ms early and cost a capture-time residual per packet that no call pays. Prints, at the
+clip's frame rate:
 - payload: bytes of the frame packets (key and delta) as ZeroMQ carries them, in kbit/s, split
-  into packet headers and range-coded bodies, with the share of keyframes and of frames that
-  needed no packet;
+  into packet headers and range-coded bodies, with the keyframes and the frames that needed
+  no packet;
+- where the body bits go: the information coded per channel in delta frames, the delta frames'
+  frame step and capture time, whole keyframe bodies, and what rounding bodies up to whole
+  bytes adds;
 - on the wire: the same packets with ZMTP framing (2 bytes) and TCP/IPv4 headers (52 bytes
   with timestamps) each, plus one 52-byte ACK per packet back, as a user on a network sees it;
 - the error quantisation adds: vertices rebuilt from the decoded values against vertices
-  rebuilt from the unquantised parameters, in mm (model space) and in pixels at the call's
-  size (RMS, 99th percentile, max).
+  rebuilt from the values the sender quantised (after its smoothing), in mm (model space,
+  expression only) and in pixels at the call's size (RMS, 99th percentile, max);
+- how far the rebuilt face is from the tracker's raw measurement (smoothing plus
+  quantisation), in pixels.
 """
 
 from __future__ import annotations
@@ -25,17 +34,33 @@ from models.face_channels import WIRE, pose_from_channels
 from protocol.channels import ChannelDecoder, ChannelSpec
 from protocol.packets import KeyFrame, decode
 from protocol.quant import dequantise
-from sender.capture import VideoSource, demo_clip_path
+from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 
 ZMTP_BYTES = 2
 TCP_IP_BYTES = 52
 
 
-def measure(path: Path, error_px: float, frames: int | None) -> dict[str, float]:
+def _stats(prefix: str, x: np.ndarray) -> dict[str, float]:
+    return {
+        f"{prefix}_rms": float(np.sqrt((x**2).mean())),
+        f"{prefix}_p99": float(np.percentile(x, 99)),
+        f"{prefix}_max": float(x.max()),
+    }
+
+
+def measure(
+    path: Path, error_px: float, frames: int | None, smoothing: bool = True
+) -> dict[str, object]:
     with VideoSource(path) as video:
-        encoder = FaceEncoder(video.width, video.height, video.fps, error_px=error_px)
-        it = video.frames(limit=frames)
+        fps = video.fps
+        encoder = FaceEncoder(
+            video.width, video.height, fps, error_px=error_px, smoothing=smoothing
+        )
+        it = (
+            CapturedFrame(f.index, f.image, round(f.index * 1e6 / fps))
+            for f in video.frames(limit=frames)
+        )
         snapshot = None
         for frame in it:
             snapshot = encoder.start(frame)
@@ -43,13 +68,19 @@ def measure(path: Path, error_px: float, frames: int | None) -> dict[str, float]
                 break
         assert snapshot is not None, f"no face in {path}"
         specs = [ChannelSpec(*c) for c in snapshot.channels]
-        decoder = ChannelDecoder(specs, round(1e6 / video.fps))
+        decoder = ChannelDecoder(specs, round(1e6 / fps))
         wires = encoder.wires
         assert wires is not None
         sizes, heads, keys, n = [], [], 0, 0
         err_cm: list[np.ndarray] = []
         err_px: list[np.ndarray] = []
+        raw_px: list[np.ndarray] = []
         shown = None
+
+        def image(values: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+            model = wires.deform(encoder.rest_params + encoder.basis.params(values[WIRE]))
+            return model, pose_from_channels(values).apply(model)[:, :2]
+
         for frame in it:
             n += 1
             result = encoder.analyse(frame.image)
@@ -60,41 +91,37 @@ def measure(path: Path, error_px: float, frames: int | None) -> dict[str, float]
                 heads.append(len(data) - len(packet.body))
                 keys += isinstance(packet, KeyFrame)
                 shown = decoder.decode(decode(data))
-            if result is None or shown is None:
+            if result is None or shown is None or encoder.intended is None:
                 continue
-            pose, params = result
             floats = {s.name: dequantise(shown.values[s.name], s.step) for s in specs}
-            q_pose = pose_from_channels(floats)
-            q_model = wires.deform(encoder.rest_params + encoder.basis.params(floats[WIRE]))
-            fit_model = wires.deform(
-                encoder.rest_params + encoder.basis.params(encoder.projected(params))
-            )
-            err_cm.append(np.linalg.norm(q_model - fit_model, axis=1))
-            err_px.append(
-                np.linalg.norm((q_pose.apply(q_model) - pose.apply(fit_model))[:, :2], axis=1)
-            )
-        fps = video.fps
+            q_model, q_image = image(floats)
+            meant_model, meant_image = image(encoder.intended)
+            _, raw_image = image(encoder.channel_values(*result))
+            err_cm.append(np.linalg.norm(q_model - meant_model, axis=1))
+            err_px.append(np.linalg.norm(q_image - meant_image, axis=1))
+            raw_px.append(np.linalg.norm(q_image - raw_image, axis=1))
     duration = n / fps
-    payload = sum(sizes) * 8 / duration / 1000
-    head = sum(heads) * 8 / duration / 1000
-    wire = (sum(sizes) + len(sizes) * (ZMTP_BYTES + TCP_IP_BYTES)) * 8 / duration / 1000
-    acks = len(sizes) * TCP_IP_BYTES * 8 / duration / 1000
+
+    def kbps(nbytes: float) -> float:
+        return nbytes * 8 / duration / 1000
+
+    body_bytes = sum(sizes) - sum(heads)
+    coded = {k: v / 8 for k, v in encoder.coded_bits.items()}
+    coded["byte rounding"] = body_bytes - sum(coded.values())
     mm, px = np.concatenate(err_cm) * 10, np.concatenate(err_px)
     return {
         "frames": n,
-        "payload_kbps": payload,
-        "header_kbps": head,
-        "body_kbps": payload - head,
+        "payload_kbps": kbps(sum(sizes)),
+        "header_kbps": kbps(sum(heads)),
+        "body_kbps": kbps(body_bytes),
+        "bodies_kbps": {k: kbps(v) for k, v in coded.items()},
         "keyframes": keys,
         "skipped": n - len(sizes),
-        "wire_kbps": wire,
-        "ack_kbps": acks,
-        "mm_rms": float(np.sqrt((mm**2).mean())),
-        "mm_p99": float(np.percentile(mm, 99)),
-        "mm_max": float(mm.max()),
-        "px_rms": float(np.sqrt((px**2).mean())),
-        "px_p99": float(np.percentile(px, 99)),
-        "px_max": float(px.max()),
+        "wire_kbps": kbps(sum(sizes) + len(sizes) * (ZMTP_BYTES + TCP_IP_BYTES)),
+        "ack_kbps": kbps(len(sizes) * TCP_IP_BYTES),
+        **_stats("mm", mm),
+        **_stats("px", px),
+        **_stats("raw_px", np.concatenate(raw_px)),
         "size": f"{snapshot.width}x{snapshot.height}",
     }
 
@@ -104,20 +131,31 @@ def main() -> None:
     parser.add_argument("--input", type=Path, default=demo_clip_path())
     parser.add_argument("--error-px", type=float, nargs="+", default=[0.5])
     parser.add_argument("--frames", type=int)
+    parser.add_argument(
+        "--no-smoothing", action="store_true", help="quantise the tracker's raw values"
+    )
     args = parser.parse_args()
     for e in args.error_px:
-        r = measure(args.input, e, args.frames)
+        r = measure(args.input, e, args.frames, smoothing=not args.no_smoothing)
+        smoothing = "no smoothing" if args.no_smoothing else "smoothed"
         print(
-            f"{args.input.name} {r['size']}, error budget {e} px/channel, {r['frames']} frames: "
-            f"payload {r['payload_kbps']:.2f} kbit/s (headers {r['header_kbps']:.2f}, "
-            f"bodies {r['body_kbps']:.2f}; {r['keyframes']} keyframes, "
+            f"{args.input.name} {r['size']}, error budget {e} px/channel, {smoothing}, "
+            f"{r['frames']} frames: payload {r['payload_kbps']:.2f} kbit/s (headers "
+            f"{r['header_kbps']:.2f}, bodies {r['body_kbps']:.2f}; {r['keyframes']} keyframes, "
             f"{r['skipped']} frames without a packet); on the wire {r['wire_kbps']:.1f} kbit/s "
             f"+ {r['ack_kbps']:.1f} kbit/s of ACKs back"
         )
+        bodies = r["bodies_kbps"]
+        assert isinstance(bodies, dict)
+        print("  bodies, kbit/s: " + ", ".join(f"{k} {v:.3f}" for k, v in bodies.items()))
         print(
             f"  quantisation error: {r['mm_rms']:.3f} mm RMS, p99 {r['mm_p99']:.3f}, "
             f"max {r['mm_max']:.3f} mm; {r['px_rms']:.3f} px RMS, p99 {r['px_p99']:.3f}, "
             f"max {r['px_max']:.3f} px"
+        )
+        print(
+            f"  rebuilt against the raw tracking (smoothing + quantisation): "
+            f"{r['raw_px_rms']:.3f} px RMS, p99 {r['raw_px_p99']:.3f}, max {r['raw_px_max']:.3f} px"
         )
 
 

@@ -25,6 +25,7 @@ from models.camera import CAMERA, CAMERA_SIZE, camera_step, corners_from_homogra
 from models.face_channels import (
     DEFAULT_ERROR_PX,
     HYSTERESIS,
+    POSE_TRANSLATION,
     WIRE,
     WireBasis,
     channel_steps,
@@ -42,6 +43,7 @@ from protocol.packets import DeltaFrame, KeyFrame, Snapshot
 from protocol.quant import quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
+from sender.channel_filter import ChannelSmoother
 from sender.landmarks import LandmarkTracker
 from sender.texture import UvRasteriser
 
@@ -80,7 +82,9 @@ class FaceEncoder:
     Call :meth:`start` with frames until it returns a Snapshot (the first frame with a face),
     then :meth:`encode` for every frame. A frame where tracking fails repeats the last
     parameters. ``error_px`` is the most one channel's quantisation may move a vertex, in
-    pixels at the call's size.
+    pixels at the call's size. With ``smoothing`` (the default) the channel values are
+    filtered over time before quantisation (:mod:`sender.channel_filter`): the tracker's
+    jitter is most of what would otherwise be sent.
     """
 
     def __init__(
@@ -93,6 +97,7 @@ class FaceEncoder:
         session_id: int | None = None,
         error_px: float = DEFAULT_ERROR_PX,
         basis: WireBasis | None = None,
+        smoothing: bool = True,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker = tracker or LandmarkTracker()
@@ -116,6 +121,12 @@ class FaceEncoder:
         self._camera_shift = np.zeros(CAMERA_SIZE)
         self.frames_untracked = 0
         self.values_clipped = 0
+        self.smoothing = smoothing
+        self._smoother: ChannelSmoother | None = None
+        self._depth = 0.0
+        #: The float channel values the last tracked frame was quantised from (after
+        #: smoothing): what the receiver rebuilds, within the quantisation budget.
+        self.intended: dict[str, np.ndarray] | None = None
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
@@ -157,6 +168,9 @@ class FaceEncoder:
             specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
         )
         self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
+        self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
+        self.intended = None
+        self._depth = float(self._last_values[POSE_TRANSLATION][2] * self.steps[POSE_TRANSLATION])
         logger.info(
             "session model from frame %d: face %.0f px wide, %d wire parameters in %d "
             "basis coefficients",
@@ -208,6 +222,11 @@ class FaceEncoder:
         values[CAMERA] = self._camera_shift
         return values
 
+    @property
+    def coded_bits(self) -> dict[str, float]:
+        """Bits coded in frame bodies so far, by channel (see ChannelEncoder.coded_bits)."""
+        return {} if self._channels is None else dict(self._channels.coded_bits)
+
     def request_keyframe(self) -> None:
         """The next packet is a keyframe (a receiver asked for one)."""
         if self._channels is not None:
@@ -225,7 +244,18 @@ class FaceEncoder:
         if result is None:
             self.frames_untracked += 1  # repeat the last values
         else:
-            self._last_values = self._quantise(self.channel_values(*result), self._last_values)
+            floats = self.channel_values(*result)
+            if self._smoother is not None:
+                # Frame numbers, not capture times, time the filter: a file read faster than
+                # real time is filtered as it would be in a call.
+                floats = self._smoother(floats, frame.index / self.fps)
+            # The head's depth (translation z) moves nothing on screen: the receiver's camera
+            # is orthographic and placed from the vertices' own depth range. Sending its
+            # jitter would cost bits for nothing, so it keeps the snapshot frame's level.
+            floats[POSE_TRANSLATION] = floats[POSE_TRANSLATION].copy()
+            floats[POSE_TRANSLATION][2] = self._depth
+            self.intended = floats
+            self._last_values = self._quantise(floats, self._last_values)
         packet, _ = self._channels.encode(frame.index, frame.capture_us, self._last_values)
         return packet
 
