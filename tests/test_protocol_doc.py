@@ -54,23 +54,29 @@ class RangeDecoder:
             self.range <<= 8
         return bit
 
-    def adaptive(self, ctx: list[int], i: int) -> int:
-        bit = self.decode(ctx[i])
+    def adaptive(self, ctx: list[list[int]], i: int) -> int:
+        p0, count = ctx[i]
+        bit = self.decode(p0)
+        shift = count + 1
+        if count < 3:
+            count += 1
         if bit:
-            ctx[i] -= ctx[i] >> 4
+            p0 -= p0 >> shift
         else:
-            ctx[i] += (4096 - ctx[i]) >> 4
+            p0 += (4096 - p0) >> shift
+        ctx[i] = [p0, count]
         return bit
 
 
 ZERO, SIGN, LENGTH = 0, 1, 2  # an IntContexts set: [zero, sign, length[0..31]]
 
 
-def int_contexts() -> list[int]:
-    return [2048] * (2 + 32)
+def int_contexts() -> list[list[int]]:
+    """Each context is [p0, count]."""
+    return [[2048, 0] for _ in range(2 + 32)]
 
 
-def magnitude(dec: RangeDecoder, c: list[int]) -> int:
+def magnitude(dec: RangeDecoder, c: list[list[int]]) -> int:
     n = 1
     while n < 32 and dec.adaptive(c, LENGTH + n - 1):
         n += 1
@@ -80,11 +86,11 @@ def magnitude(dec: RangeDecoder, c: list[int]) -> int:
     return m
 
 
-def uint(dec: RangeDecoder, c: list[int]) -> int:
+def uint(dec: RangeDecoder, c: list[list[int]]) -> int:
     return 0 if dec.adaptive(c, ZERO) else magnitude(dec, c)
 
 
-def sint(dec: RangeDecoder, c: list[int]) -> int:
+def sint(dec: RangeDecoder, c: list[list[int]]) -> int:
     if dec.adaptive(c, ZERO):
         return 0
     negative = dec.adaptive(c, SIGN)

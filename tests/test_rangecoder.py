@@ -80,9 +80,25 @@ def test_output_is_near_the_information_content() -> None:
     rng = random.Random(1)
     bits = [1 if rng.random() < 0.1 else 0 for _ in range(8000)]
     data = _roundtrip_bits(bits, 1)
-    # H(0.1) = 0.469 bits/bit: 469 bytes at best. Fast adaptation (shift 4), chosen for
-    # short sessions, costs about 7 % on a stationary source.
+    # H(0.1) = 0.469 bits/bit: 469 bytes at best. Fast adaptation (shift 4 once settled),
+    # chosen for short sessions, costs about 7 % on a stationary source.
     assert 469 <= len(data) <= 520
+
+
+def test_contexts_learn_fast_then_settle() -> None:
+    # docs/protocol.md 5.1: shifts 1, 2, 3 for a context's first three bits, then 4.
+    ctx = Context()
+    seen = []
+    for bit in [1, 1, 0, 0, 0]:
+        ctx.update(bit)
+        seen.append(ctx.p0)
+    assert seen == [1024, 768, 768 + (3328 >> 3), 1184 + (2912 >> 4), 1366 + (2730 >> 4)]
+    # A long run settles where a shift of 4 stops moving, and never leaves (0, 4096).
+    for bit in (0, 1):
+        ctx = Context()
+        for _ in range(500):
+            ctx.update(bit)
+        assert ctx.p0 == (4081 if bit == 0 else 15)
 
 
 def test_out_of_range_values_are_refused() -> None:
