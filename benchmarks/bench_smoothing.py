@@ -13,6 +13,8 @@ Bundled clip (rendered, every rig marker's true position known per frame; visibl
           changes in the error from one frame to the next is noise)
   lag     time shift (frames) that best aligns the landmarks with the truth: the landmarks at
           t fit the truth at t - lag
+  blink   the lid gap (upper to lower lid marker, both eyes) at its smallest round each of the
+          clip's five blinks, mean; what smoothing takes off a fast, short movement
 Real clips (no truth), in % of the inter-ocular distance (outer eye corners):
   jitter  RMS second difference of the points over time (acceleration: noise, since a head
           barely accelerates between two frames)
@@ -98,6 +100,16 @@ def clip_truth_metrics(pts: np.ndarray, truth: np.lib.npyio.NpzFile) -> tuple[fl
     return rms, jitter, lag
 
 
+LIDS = ((159, 145), (386, 374))
+
+
+def blink_gap(xy: np.ndarray, blinks: np.ndarray) -> float:
+    """Mean over blinks of the smallest lid gap (px) within 4 frames of each; xy (n, k, 2)
+    indexed by mesh vertex."""
+    gaps = sum(np.linalg.norm(xy[:, u] - xy[:, lo], axis=1) for u, lo in LIDS) / len(LIDS)
+    return float(np.mean([np.nanmin(gaps[b - 4 : b + 5]) for b in blinks]))
+
+
 def real_metrics(pts: np.ndarray, raw: np.ndarray) -> tuple[float, float, float]:
     iod = np.linalg.norm(raw[:, EYES[0], :2] - raw[:, EYES[1], :2], axis=1)
     scale = np.nanmedian(iod)
@@ -105,8 +117,12 @@ def real_metrics(pts: np.ndarray, raw: np.ndarray) -> tuple[float, float, float]
     acc = xy[2:] - 2 * xy[1:-1] + xy[:-2]
     jitter = float(np.sqrt(np.nanmean((acc**2).sum(axis=2)))) * 100
     rxy = raw[:, :, :2] / scale
-    speed = np.nanmean(np.linalg.norm(np.diff(rxy, axis=0), axis=2), axis=1)
-    speed = np.concatenate([[0.0], speed])
+    step = np.linalg.norm(np.diff(rxy, axis=0), axis=2)
+    # Untracked frames have no speed (NaN) and take no part.
+    tracked = np.isfinite(step).all(axis=1)
+    mean_step = np.full(len(step), np.nan)
+    mean_step[tracked] = step[tracked].mean(axis=1)
+    speed = np.concatenate([[0.0], mean_step])
     fast = np.flatnonzero(speed >= np.nanpercentile(speed, 90))
     fast = fast[(fast > 3) & (fast < len(pts) - 3)]
     lag = best_lag(xy, rxy, fast)
@@ -137,14 +153,19 @@ def main() -> None:
         else:
             print(f"(no {path}: skipped)")
 
-    head = f"{'setting':<22}| bundled clip: error jitter  lag |"
+    truth_xy = np.full((len(clip_raw), 468, 2), np.nan)
+    truth_xy[:, truth["marker_vertices"]] = truth["marker_xy"]
+    blinks = truth["blink_frames"]
+    print(f"bundled clip, lid gap at the blinks: truth {blink_gap(truth_xy, blinks):.1f} px")
+    head = f"{'setting':<22}| bundled clip: error jitter  lag blink |"
     head += "".join(f" {n[:14]:>14}: jitter  lag  fast |" for n in real)
     print(head)
     for st in settings:
         label = "raw" if st is None else f"fc {st[0]:g} b {st[1]:g} dc {st[2]:g}"
         pts = clip_raw if st is None else smooth(clip_raw, clip_ok, clip_fps, *st)
         e, j, lag = clip_truth_metrics(pts, truth)
-        row = f"{label:<22}|        {e:5.2f}  {j:5.2f} {lag:+4.2f} |"
+        gap = blink_gap(pts[:, :, :2], blinks)
+        row = f"{label:<22}|        {e:5.2f}  {j:5.2f} {lag:+4.2f} {gap:5.1f} |"
         for raw, ok, fps in real.values():
             p = raw if st is None else smooth(raw, ok, fps, *st)
             rj, rl, rf = real_metrics(p, raw)
