@@ -49,7 +49,9 @@ from protocol.constants import (
     PNG_MAGIC,
     PROTOCOL_VERSION,
     REM_CODECS,
+    RIFF_MAGIC,
     UINT32_MAX,
+    WEBP_MAGIC,
     Kind,
 )
 
@@ -108,8 +110,9 @@ def _bytes(name: str, value: object) -> bytes:
 
 def _image(name: str, value: object) -> bytes:
     data = _bytes(name, value)
-    if data and not (data.startswith(JPEG_MAGIC) or data.startswith(PNG_MAGIC)):
-        raise PacketError(f"{name}: neither JPEG nor PNG (starts with {data[:8].hex()})")
+    webp = data.startswith(RIFF_MAGIC) and data[8:12] == WEBP_MAGIC
+    if data and not (data.startswith(JPEG_MAGIC) or data.startswith(PNG_MAGIC) or webp):
+        raise PacketError(f"{name}: not JPEG, PNG or WebP (starts with {data[:12].hex()})")
     return data
 
 
@@ -222,7 +225,7 @@ class Snapshot(_Packet):
     seq : the first frame number the snapshot is valid for
     vertices : (n, 3) float, cm, model space (stored and sent as float32); vertex i is
         landmark i of the canonical mesh
-    texture, background : JPEG or PNG bytes (may be empty)
+    texture, background : JPEG, PNG or WebP bytes (may be empty)
     channels : ``(name, size, step)`` of every frame channel, in coding order
         (protocol.channels.ChannelSpec)
     rig_hash : SHA-256 (hex) of the rig data both ends must share (models.rig.rig_hash)

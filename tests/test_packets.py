@@ -266,7 +266,9 @@ def snapshot_fields(**changes: object) -> bytes:
         ({"fps": 30}, None),  # ints are accepted where floats are expected
         ({"width": 0}, "Snapshot.width: 0 outside [1, 4096]"),
         ({"height": 16384}, "Snapshot.height: 16384 outside [1, 4096]"),
-        ({"texture": b"GIF89a"}, "Snapshot.texture: neither JPEG nor PNG (starts with"),
+        ({"texture": b"GIF89a"}, "Snapshot.texture: not JPEG, PNG or WebP (starts with"),
+        ({"texture": b"RIFF\x04\x00\x00\x00WAVE"}, "Snapshot.texture: not JPEG, PNG or WebP"),
+        ({"background": b"RIFF\x04\x00\x00\x00WEBP"}, None),
         ({"channels": [["wire", 4, -0.1]]}, "Snapshot.channels[0] step: must be > 0, got -0.1"),
         ({"channels": [["wire", 0, 0.1]]}, "Snapshot.channels[0] size: 0 outside [1, 8192]"),
         ({"channels": [["wire", 4]]}, "Snapshot.channels[0]: expected [name, size, step]"),
