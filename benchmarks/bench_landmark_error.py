@@ -96,8 +96,8 @@ def main() -> None:
     ap.add_argument("--draw", type=Path, help="write each photo with both point sets here")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    rows = []
-    per_point = []
+    rows: list[tuple[str, tuple[int, ...], float, float | None, float | None]] = []
+    per_point: list[np.ndarray] = []
     for image_path, truth in annotated(args.folder):
         img = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
         if img is None:
@@ -142,10 +142,10 @@ def main() -> None:
                 for name, (lo, hi) in REGIONS.items()
             )
         )
-        worst = np.argsort(-by_point)[:5]
+        order = np.argsort(-by_point)[:5]
         print(
             "largest mean per iBUG point: "
-            + ", ".join(f"{INNER[i]}: {by_point[i]:.3f}" for i in worst)
+            + ", ".join(f"{INNER[i]}: {by_point[i]:.3f}" for i in order)
         )
 
 
