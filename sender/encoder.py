@@ -49,10 +49,16 @@ from sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
 
-TEXTURE_SIZE = 512
 #: A keyframe every this many seconds (and whenever a receiver asks for one).
 KEYFRAME_INTERVAL_S = 4.0
-JPEG_QUALITY = 90
+#: Texture side per pixel of the face's width in the snapshot frame (rounded up to a power of
+#: two, within MIN/MAX_TEXTURE_SIZE): more texels than the camera saw add bytes, not detail.
+TEXELS_PER_FACE_PIXEL = 1.25
+MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE = 64, 512
+#: WebP quality of the snapshot's texture and background (chosen by measurement, see
+#: BENCHMARKS.md "Snapshot size").
+TEXTURE_QUALITY = 97
+BACKGROUND_QUALITY = 80
 
 
 @dataclass(frozen=True)
@@ -60,8 +66,8 @@ class SessionModel:
     """What the receiver needs once: the person's mesh, texture and background.
 
     mesh : person-specific mesh, model space (cm), canonical topology and UVs
-    texture : (TEXTURE_SIZE, TEXTURE_SIZE, 3) uint8 BGR, v = 0 at the top row
-    background : (h, w, 3) uint8 BGR, the first frame with the face filled in
+    texture : (T, T, 3) uint8 BGR, v = 0 at the top row (T from :func:`texture_size`)
+    background : (h, w, 3) uint8 BGR, the snapshot frame itself
     """
 
     mesh: FaceMesh
@@ -69,11 +75,18 @@ class SessionModel:
     background: np.ndarray
 
 
-def _jpeg(image: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+def _webp(image: np.ndarray, quality: int) -> bytes:
+    ok, buf = cv2.imencode(".webp", image, [cv2.IMWRITE_WEBP_QUALITY, quality])
     if not ok:
-        raise RuntimeError("JPEG encoding failed")
+        raise RuntimeError("WebP encoding failed")
     return buf.tobytes()
+
+
+def texture_size(face_width_px: float) -> int:
+    """Side of the session's texture for a face this wide in the snapshot frame."""
+    wanted = max(float(face_width_px) * TEXELS_PER_FACE_PIXEL, 1.0)
+    side = 1 << int(np.ceil(np.log2(wanted)))
+    return int(np.clip(side, MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE))
 
 
 class FaceEncoder:
@@ -141,7 +154,8 @@ class FaceEncoder:
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
         mesh = self.canonical.with_vertices(pose.inverse(points))
-        texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, TEXTURE_SIZE).unwrap(
+        side = texture_size(np.ptp(points[:, 0]))
+        texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, side).unwrap(
             frame.image, points
         )
         background = frame.image.copy()
@@ -186,13 +200,13 @@ class FaceEncoder:
             height=self.height,
             fps=self.fps,
             vertices=mesh.vertices.astype(np.float32),
-            texture=_jpeg(texture),
-            background=_jpeg(background),
+            texture=_webp(texture, TEXTURE_QUALITY),
+            background=_webp(background, BACKGROUND_QUALITY),
             channels=[(s.name, s.size, s.step) for s in specs],
             rig_hash=rig_hash(),
             keyframe_interval=interval,
             reference=[tuple(int(v) for v in self._last_values[s.name]) for s in specs],
-            meta={"tracker": "mediapipe-landmarks", "texture_size": TEXTURE_SIZE},
+            meta={"tracker": "mediapipe-landmarks", "texture_size": side},
         )
 
     def analyse(self, image: np.ndarray) -> tuple[Pose, np.ndarray] | None:

@@ -1,0 +1,36 @@
+"""The snapshot fits the face: texture resolution follows the face's size, images are WebP."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from protocol.images import decode_image, image_size
+from sender.capture import CapturedFrame
+from sender.encoder import MAX_TEXTURE_SIZE, MIN_TEXTURE_SIZE, FaceEncoder, texture_size
+
+ASTRONAUT = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
+
+
+def test_texture_side_is_the_power_of_two_the_face_can_fill() -> None:
+    assert texture_size(60) == 128  # a QCIF call's face
+    assert texture_size(185) == 256  # the bundled clip's
+    assert texture_size(10) == MIN_TEXTURE_SIZE
+    assert texture_size(4000) == MAX_TEXTURE_SIZE
+
+
+def test_a_small_face_gets_a_small_texture_and_both_images_are_webp() -> None:
+    face = cv2.imread(str(ASTRONAUT))
+    for scale, side in ((0.5, 64), (0.75, 128), (1.0, 128)):  # faces 47, 70, 94 px wide
+        image = cv2.resize(face, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        h, w = image.shape[:2]
+        snapshot = FaceEncoder(w, h, 30.0).start(CapturedFrame(0, image, 0))
+        assert snapshot is not None
+        assert image_size(snapshot.texture) == ("webp", side, side)
+        assert image_size(snapshot.background) == ("webp", w, h)
+        background = decode_image(snapshot.background, "background")
+        # Quality: the background is the frame itself, seen at the call's size.
+        assert cv2.PSNR(background, image) > 30.0
+        assert np.isfinite(snapshot.vertices).all()
