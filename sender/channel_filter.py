@@ -8,11 +8,19 @@ one follows with little lag.
 
 Values are filtered in quantisation steps (value / step). A step is a fixed distance on screen
 (docs/protocol.md section 6.4), so one set of settings suits any call size, and speeds are in
-steps per second. The pose (rotation, scale, translation) gets a higher cutoff than the other
-channels: the whole face moves with it, so its lag shows most. The expression (the wire basis,
-and any channel without settings of its own) reacts fast to speed, so that a blink keeps its
-depth. The settings were chosen on the bundled clip against its ground truth and checked on
-real clips with a jitter model (BENCHMARKS.md, "Geometry bit rate").
+steps per second. Each kind of motion gets its own settings:
+
+- the head's position (translation) moves every pixel of the face, so it has a high cutoff and
+  a speed estimate that reacts within a few frames: lag there costs the most picture quality;
+- its rotation, a high cutoff too, with a steadier speed estimate;
+- its scale (distance to the camera) and the camera's motion change slowly: low cutoffs;
+- the expression (the wire basis, and any channel without settings of its own) is still most
+  of the time and moves in bursts, so its cutoff is low at rest and opens fast with speed: a
+  blink keeps its depth.
+
+The settings were chosen against the bundled clip's ground truth (rebuilt markers, blink
+depth) and against real clips' pictures (face SSIM of a call, benchmarks/bench_quality.py);
+BENCHMARKS.md, "Geometry bit rate", has the figures.
 """
 
 from __future__ import annotations
@@ -46,12 +54,17 @@ class OneEuroSettings:
             raise ValueError(f"One Euro settings need min_cutoff, d_cutoff > 0, beta >= 0: {self}")
 
 
-POSE = OneEuroSettings(min_cutoff=4.0, beta=1.0, d_cutoff=1.0)
-#: The background's motion: jitter of a few tenths of a pixel, no sudden events.
-SCENE = OneEuroSettings(min_cutoff=1.0, beta=0.2, d_cutoff=4.0)
+TRANSLATION = OneEuroSettings(min_cutoff=4.0, beta=1.0, d_cutoff=4.0)
+ROTATION = OneEuroSettings(min_cutoff=4.0, beta=1.0, d_cutoff=1.0)
+SLOW = OneEuroSettings(min_cutoff=1.0, beta=0.2, d_cutoff=4.0)
 EXPRESSION = OneEuroSettings(min_cutoff=1.0, beta=0.3, d_cutoff=10.0)
 #: Settings by channel name; channels not listed get ``EXPRESSION``.
-SETTINGS = {POSE_ROTATION: POSE, POSE_SCALE: POSE, POSE_TRANSLATION: POSE, CAMERA: SCENE}
+SETTINGS = {
+    POSE_TRANSLATION: TRANSLATION,
+    POSE_ROTATION: ROTATION,
+    POSE_SCALE: SLOW,
+    CAMERA: SLOW,
+}
 
 
 def _alpha(cutoff_hz: np.ndarray | float, dt: float) -> np.ndarray:
