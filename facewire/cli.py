@@ -59,8 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
     _add_demo(sub)
-    from facewire import keys, track, wirestool
+    from facewire import call, keys, track, wirestool
 
+    call.add_parsers(sub)
     wirestool.add_parser(sub)
     keys.add_parser(sub)
     track.add_parser(sub)

@@ -267,13 +267,17 @@ class _Endpoint:
     def closed(self) -> bool:
         return self._closed
 
-    def close(self) -> None:
-        """Close the sockets at once (linger 0) and the context if this endpoint made it."""
+    def close(self, linger_s: float = 0.0) -> None:
+        """Close the sockets and the context if this endpoint made it.
+
+        By default at once (linger 0: what is still queued is dropped). ``linger_s`` > 0 gives
+        the last messages (a Bye) that long to leave; the close waits for them, at most that.
+        """
         if self._closed:
             return
         self._closed = True
         for sock in self._sockets:
-            sock.close(linger=0)
+            sock.close(linger=_ms(linger_s))
         self._release()
         if self._own_context:
             self._context.term()

@@ -1,9 +1,17 @@
-"""The receiving end of a call: join, rebuild every frame, record, measure."""
+"""The receiving end of a call: join, rebuild every frame, record, measure.
+
+:func:`run_receiver` is the receive loop. Besides the MP4 recording, every rendered picture
+can be handed to a frame sink (a live view, say) with the report's figures so far, and the
+loop can be asked to stop (a signal handler) at any time: the recording is then closed
+properly and the report returned as usual.
+"""
 
 from __future__ import annotations
 
 import logging
+import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +32,10 @@ logger = logging.getLogger(__name__)
 MAX_HOLD_FRAMES = 300
 #: Keyframe requests while the chain is broken are repeated at most this often.
 KEYFRAME_RETRY_S = 0.25
+#: While waiting for a session, how often a stop request is looked at.
+STOP_CHECK_S = 0.5
+#: Time a stopped receiver gives its last message ("left") to reach the sender.
+LINGER_S = 0.5
 
 
 @dataclass
@@ -46,6 +58,7 @@ class ReceiverReport:
     bytes_received: dict[str, int] = field(default_factory=dict)
     bytes_sent: dict[str, int] = field(default_factory=dict)
     ended_by: str = ""
+    keyframe_interval: int = 0  # frames, the last session's (a freeze should not outlast it)
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
@@ -68,64 +81,193 @@ class ReceiverReport:
             "bytes_received": dict(self.bytes_received),
             "bytes_sent": dict(self.bytes_sent),
             "ended_by": self.ended_by,
+            "keyframe_interval": self.keyframe_interval,
         }
+
+
+@dataclass(frozen=True)
+class RenderedFrame:
+    """A picture the receiver has just rendered (held pictures are not passed again).
+
+    image : (h, w, 3) uint8 BGR at the session's size
+    capture_us : when the sender captured the frame (the sender's monotonic clock, µs)
+    latency_ms : capture to this rendered picture, meaningful where both ends share a clock
+    """
+
+    session_id: int
+    seq: int
+    image: np.ndarray
+    capture_us: int
+    latency_ms: float
+
+
+#: Called with every rendered picture and the report so far (live figures). It runs on the
+#: receive loop's thread: it must return quickly (copy the picture and hand it on).
+FrameSink = Callable[[RenderedFrame, ReceiverReport], None]
+
+
+def _never() -> bool:
+    return False
+
+
+def _quiet(message: str) -> None:
+    logger.info("%s", message)
 
 
 def run_receiver(
     host: str,
     pub_port: int,
     snapshot_port: int,
-    output: str,
+    output: str | None,
     join_timeout_s: float = 20.0,
     rejoin_timeout_s: float = 0.0,
-    **keys: Any,
+    *,
+    sink: FrameSink | None = None,
+    stop: Callable[[], bool] = _never,
+    notify: Callable[[str], None] = _quiet,
+    **endpoint_options: Any,
 ) -> ReceiverReport:
-    """Join the call at ``host`` and record the rebuilt frames to ``output``.
+    """Join the call at ``host`` and record the rebuilt frames to ``output`` (None: no file).
 
-    ``keys`` go to :class:`~protocol.transport.ReceiverEndpoint` (``secret_key_file`` and
-    ``server_key_file`` for CURVE, or ``plain=True``).
+    ``endpoint_options`` go to :class:`~protocol.transport.ReceiverEndpoint`: the keys
+    (``secret_key_file`` and ``server_key_file`` for CURVE, or ``plain=True``) and
+    ``bind=True`` to bind on ``host`` for a sender that connects.
 
     Frame i of the recording rebuilds the sender's frame i: a frame with no packet (nothing
     changed, or the packet was lost) repeats the previous picture, so the recording stays
     aligned. When several packets are waiting, all are decoded (each delta needs the one
-    before) but only the newest is rendered. After a gap the picture holds and a keyframe is
-    requested until one arrives.
+    before) but only the newest is rendered (and passed to ``sink``). After a gap the picture
+    holds and a keyframe is requested until one arrives.
 
     A session ends with the sender's Bye, when the sender is silent for PEER_TIMEOUT_S, or when
     it restarts (a new session on the same address). With ``rejoin_timeout_s`` > 0 the
     receiver then waits that long for the next session and records it on, scaled to the
-    recording's size; otherwise the call ends.
+    recording's size; otherwise the call ends. Either timeout may be ``math.inf``.
+
+    ``stop()`` is looked at between frames and while waiting: once it is True the call ends
+    (``ended_by`` "stopped") and the recording is closed with its index. ``notify`` gets one
+    line per event a person watching wants to know (a session began or ended). Raises
+    TransportError when no sender came within ``join_timeout_s``.
     """
     report = ReceiverReport()
-    with ReceiverEndpoint(host, pub_port, snapshot_port, **keys) as endpoint:
+    with ReceiverEndpoint(host, pub_port, snapshot_port, **endpoint_options) as endpoint:
+        ports = endpoint.ports
+        how = "on" if endpoint_options.get("bind") else "at"
+        notify(f"waiting for a sender {how} tcp://{host}:{ports[0]} (and :{ports[1]})")
         started = time.monotonic()
-        snapshot: Snapshot | None = endpoint.fetch_snapshot(timeout_ms=_ms(join_timeout_s))
-        assert snapshot is not None
-        with Mp4Recorder(output, snapshot.width, snapshot.height, snapshot.fps) as recorder:
+        snapshot = _wait_for_session(endpoint, join_timeout_s, stop)
+        if snapshot is None:
+            report.ended_by = "stopped"
+            return report
+        recorder = (
+            Mp4Recorder(output, snapshot.width, snapshot.height, snapshot.fps)
+            if output is not None
+            else None
+        )
+        try:
             while snapshot is not None:
                 report.sessions += 1
-                report.ended_by = _receive_session(endpoint, snapshot, recorder, report, started)
+                report.keyframe_interval = snapshot.keyframe_interval
+                notify(
+                    f"session {snapshot.session_id}: {snapshot.width}x{snapshot.height} at "
+                    f"{snapshot.fps:g} fps"
+                )
+                out = _Output(recorder, sink, snapshot.session_id, report)
+                before = report.frames_out
+                report.ended_by = _receive_session(endpoint, snapshot, out, report, started, stop)
+                frames = report.frames_out - before
                 snapshot = None
-                if rejoin_timeout_s > 0:
-                    logger.info("%s: waiting for a new session", report.ended_by)
+                if report.ended_by == "stopped":
+                    break
+                waiting = rejoin_timeout_s > 0
+                notify(
+                    f"session ended ({report.ended_by}) after {frames} frames"
+                    + ("; waiting for a new session" if waiting else "")
+                )
+                if waiting:
                     started = time.monotonic()
                     try:
-                        snapshot = endpoint.fetch_snapshot(timeout_ms=_ms(rejoin_timeout_s))
+                        snapshot = _wait_for_session(endpoint, rejoin_timeout_s, stop)
                     except TransportError as exc:
                         logger.info("no new session: %s", exc)
-            report.frames_out = recorder.frames
+                        notify(f"no new session within {rejoin_timeout_s:g} s")
+                    if snapshot is None and stop():
+                        report.ended_by = "stopped"
+        finally:
+            if recorder is not None:
+                recorder.close()  # writes the MP4's index, whatever ended the call
+        if report.ended_by == "stopped":
+            endpoint.send_stats({"left": 1.0})  # the sender may wait for another receiver
         report.malformed += endpoint.stats.malformed
         report.bytes_received = dict(endpoint.bytes_received)
         report.bytes_sent = dict(endpoint.bytes_sent)
+        endpoint.close(linger_s=LINGER_S)
     return report
+
+
+def _wait_for_session(
+    endpoint: ReceiverEndpoint, timeout_s: float, stop: Callable[[], bool]
+) -> Snapshot | None:
+    """The next session's snapshot; None once ``stop()``; TransportError after ``timeout_s``.
+
+    Without a way to stop (the default) it is one handshake attempt; otherwise attempts of at
+    most STOP_CHECK_S, so a stop request is seen soon.
+    """
+    if stop is _never and math.isfinite(timeout_s):
+        return endpoint.fetch_snapshot(timeout_ms=_ms(timeout_s))
+    deadline = time.monotonic() + timeout_s
+    while not stop():
+        attempt = _ms(min(STOP_CHECK_S, max(0.001, deadline - time.monotonic())))
+        try:
+            return endpoint.fetch_snapshot(timeout_ms=attempt)
+        except TransportError as exc:
+            if time.monotonic() >= deadline:
+                reason = str(exc).replace(f" within {attempt} ms", "")
+                raise TransportError(f"no sender within {timeout_s:g} s: {reason}") from None
+    return None
+
+
+class _Output:
+    """Where one session's frames go: the recording (if any) and the sink; counts them."""
+
+    def __init__(
+        self,
+        recorder: Mp4Recorder | None,
+        sink: FrameSink | None,
+        session_id: int,
+        report: ReceiverReport,
+    ) -> None:
+        self.recorder = recorder
+        self.sink = sink
+        self.session_id = session_id
+        self.report = report
+        self.size = recorder.size if recorder is not None else None
+
+    def fit(self, image: np.ndarray) -> np.ndarray:
+        """``image`` at the recording's (width, height): a later session may have another."""
+        return image if self.size is None else _fit(image, self.size)
+
+    def write(self, image: np.ndarray) -> None:
+        if self.recorder is not None:
+            self.recorder.write(image)
+        self.report.frames_out += 1
+
+    def rendered(self, image: np.ndarray, values: FrameValues, latency_ms: float) -> None:
+        self.write(image)
+        if self.sink is not None:
+            self.sink(
+                RenderedFrame(self.session_id, values.seq, image, values.capture_us, latency_ms),
+                self.report,
+            )
 
 
 def _receive_session(
     endpoint: ReceiverEndpoint,
     snapshot: Snapshot,
-    recorder: Mp4Recorder,
+    out: _Output,
     report: ReceiverReport,
     started: float,
+    stop: Callable[[], bool],
 ) -> str:
     """Rebuild and record one session's frames; returns why it ended."""
     decoder = FaceDecoder(snapshot)
@@ -139,6 +281,8 @@ def _receive_session(
         stale_from: int | None = None  # first frame shown stale because the chain broke
         last: np.ndarray | None = None
         while True:
+            if stop():
+                return "stopped"
             newest: FrameValues | None = None
             try:
                 packet = endpoint.recv(timeout_ms=200)
@@ -160,11 +304,11 @@ def _receive_session(
                     last_request = time.monotonic()
             if newest is not None:
                 start = time.perf_counter()
-                report.frames_held += _hold(recorder, last, newest.seq - next_seq)
+                report.frames_held += _hold(out, last, newest.seq - next_seq)
                 if stale_from is not None:
                     report.freezes.append((stale_from, newest.seq - stale_from))
                     stale_from = None
-                picture = _fit(decoder.reconstruct(newest), recorder.size)
+                picture = out.fit(decoder.reconstruct(newest))
                 if last is None:
                     report.first_frame_s.append(time.monotonic() - started)
                     # Frames of the session's first second that came before its first
@@ -172,14 +316,16 @@ def _receive_session(
                     # aligned; a late joiner's recording starts where it joined.
                     early = newest.seq - next_seq
                     if early <= snapshot.fps:
-                        report.frames_held += _hold(recorder, picture, early)
+                        report.frames_held += _hold(out, picture, early)
                 last = picture
-                report.latency_ms.append((now_us() - newest.capture_us) / 1000.0)
-                recorder.write(last)
+                latency_ms = (now_us() - newest.capture_us) / 1000.0
+                report.latency_ms.append(latency_ms)
+                report.bytes_received = dict(endpoint.bytes_received)
+                out.rendered(last, newest, latency_ms)
                 report.busy_s += time.perf_counter() - start
                 next_seq = newest.seq + 1
             if isinstance(packet, Bye):
-                report.frames_held += _hold(recorder, last, packet.seq - next_seq)
+                report.frames_held += _hold(out, last, packet.seq - next_seq)
                 return "bye"
             if packet is None and newest is None and not endpoint.peer_alive:
                 return "peer lost"
@@ -210,7 +356,7 @@ def _decode(
     return None
 
 
-def _hold(recorder: Mp4Recorder, last: np.ndarray | None, count: int) -> int:
+def _hold(out: _Output, last: np.ndarray | None, count: int) -> int:
     """Write the previous picture for ``count`` frames that had no packet (at most
     MAX_HOLD_FRAMES: a longer gap is a jump, not a still picture)."""
     if last is None or count <= 0:
@@ -219,5 +365,5 @@ def _hold(recorder: Mp4Recorder, last: np.ndarray | None, count: int) -> int:
         logger.warning("gap of %d frames: holding only %d", count, MAX_HOLD_FRAMES)
         count = MAX_HOLD_FRAMES
     for _ in range(count):
-        recorder.write(last)
+        out.write(last)
     return count

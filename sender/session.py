@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
-from protocol.packets import Bye, DeltaFrame, KeyFrame, KeyframeRequest, ReceiverStats
+import cv2
+
+from protocol.clock import now_us
+from protocol.packets import Bye, DeltaFrame, KeyFrame, KeyframeRequest, ReceiverStats, Snapshot
 from protocol.transport import SenderEndpoint, TransportError
-from sender.capture import CapturedFrame
+from sender.capture import CapturedFrame, CaptureError
 from sender.encoder import FaceEncoder
 
 logger = logging.getLogger(__name__)
@@ -26,10 +31,15 @@ class SenderReport:
     keyframe_requests: int = 0
     busy_s: float = 0.0  # own processing time: track + encode + publish
     receiver_stats: dict[str, float] = field(default_factory=dict)  # the latest of each name
+    stopped: bool = False  # ended by a stop request, not by the end of the input
 
     @property
     def fps(self) -> float:
         return self.frames_in / self.busy_s if self.busy_s > 0 else 0.0
+
+
+def _never() -> bool:
+    return False
 
 
 def run_sender(
@@ -37,19 +47,27 @@ def run_sender(
     encoder: FaceEncoder,
     frames: Iterable[CapturedFrame],
     publish: Callable[[FramePacket], None] | None = None,
+    stop: Callable[[], bool] = _never,
+    on_stats: Callable[[dict[str, float]], None] | None = None,
 ) -> SenderReport:
     """Encode and publish every frame of ``frames``, then say Bye.
 
     ``encoder`` has started (its snapshot is set on ``endpoint``). Between frames the back
     channel is read: a KeyframeRequest makes the next packet a keyframe, ReceiverStats are kept
     in the report. Heartbeats go out when nothing was published for a second. ``publish``
-    replaces ``endpoint.publish`` for frame packets (a test's lossy link).
+    replaces ``endpoint.publish`` for frame packets (a test's lossy link). Once ``stop()`` is
+    True (looked at before each frame) the call ends the same way, with a Bye. ``on_stats``
+    sees each ReceiverStats as it comes (a receiver says "ready" when it joins, "left" when
+    it goes).
     """
     send = publish or endpoint.publish
     report = SenderReport()
     next_seq = 0
     for frame in frames:
-        _read_back_channel(endpoint, encoder, report)
+        if stop():
+            report.stopped = True
+            break
+        _read_back_channel(endpoint, encoder, report, on_stats)
         start = time.perf_counter()
         packet = encoder.encode(frame)
         if packet is not None:  # None: nothing visible changed since the last packet
@@ -60,7 +78,7 @@ def run_sender(
         next_seq = frame.index + 1
         endpoint.heartbeat_if_idle()
     endpoint.publish(Bye(seq=next_seq))
-    _read_back_channel(endpoint, encoder, report)
+    _read_back_channel(endpoint, encoder, report, on_stats)
     return report
 
 
@@ -87,8 +105,54 @@ def wait_until_ready(
     return False
 
 
+def start_session(
+    encoder: FaceEncoder, frames: Iterator[CapturedFrame], search: int, name: str
+) -> tuple[Snapshot, list[CapturedFrame]]:
+    """Start ``encoder`` on the first frame that shows a face among the next ``search``.
+
+    Returns the snapshot and the frames read so far (the face frame last): they still have to
+    be sent. Raises CaptureError (one line, naming the source ``name``) when none shows a face.
+    """
+    buffered: list[CapturedFrame] = []
+    for frame in itertools.islice(frames, search):
+        buffered.append(frame)
+        snapshot = encoder.start(frame, seq=buffered[0].index)
+        if snapshot is not None:
+            return snapshot, buffered
+    raise CaptureError(f"no face found in the first {len(buffered)} frames of {name}")
+
+
+def restamped(frames: list[CapturedFrame]) -> list[CapturedFrame]:
+    """Frames read before the call began, counted as captured now (else their wait for the
+    receiver would show as latency)."""
+    now = now_us()
+    return [dataclasses.replace(f, capture_us=now) for f in frames]
+
+
+def capped_size(width: int, height: int, max_width: int, max_height: int) -> tuple[int, int]:
+    """(width, height) scaled down, aspect kept, to fit ``max_width`` x ``max_height``; even
+    sides (video codecs want them); unchanged when it already fits."""
+    scale = min(1.0, max_width / width, max_height / height)
+    if scale >= 1.0:
+        return width, height
+    return max(2, round(width * scale / 2) * 2), max(2, round(height * scale / 2) * 2)
+
+
+def scaled(frames: Iterable[CapturedFrame], size: tuple[int, int]) -> Iterator[CapturedFrame]:
+    """``frames`` resized to ``size`` (width, height) where they differ: a call of a large
+    input runs at a size the receiver can render in real time."""
+    for frame in frames:
+        if frame.image.shape[1::-1] != size:
+            image = cv2.resize(frame.image, size, interpolation=cv2.INTER_AREA)
+            frame = dataclasses.replace(frame, image=image)
+        yield frame
+
+
 def _read_back_channel(
-    endpoint: SenderEndpoint, encoder: FaceEncoder, report: SenderReport
+    endpoint: SenderEndpoint,
+    encoder: FaceEncoder,
+    report: SenderReport,
+    on_stats: Callable[[dict[str, float]], None] | None,
 ) -> None:
     for packet in endpoint.poll(0):
         if isinstance(packet, KeyframeRequest):
@@ -97,3 +161,5 @@ def _read_back_channel(
             report.keyframe_requests += 1
         elif isinstance(packet, ReceiverStats):
             report.receiver_stats.update(packet.values)
+            if on_stats is not None:
+                on_stats(dict(packet.values))

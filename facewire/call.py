@@ -1,0 +1,509 @@
+"""``facewire send``, ``facewire receive`` and ``facewire call``: a call between two machines.
+
+``send`` tracks a camera or a video and sends the face; ``receive`` rebuilds it, records it
+and measures it; ``call`` does both at once, each end showing the other. Either end may bind,
+the other connects (addresses and keys: :mod:`facewire.peer`).
+
+Ctrl-C or SIGTERM ends a command cleanly: a sender says Bye, a receiver closes its recording
+(a playable MP4 with its index) and tells the sender it left. A receiver whose sender ended
+says so in one line and waits for the next session; a sender whose receiver left waits for the
+next receiver.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import math
+import multiprocessing as mp
+import queue
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from facewire.peer import (
+    Address,
+    add_address_arguments,
+    add_key_arguments,
+    address_from,
+    receiver_keys,
+    sender_keys,
+)
+
+logger = logging.getLogger(__name__)
+
+FACE_SEARCH_FRAMES = 60  # frames read while looking for a face to build the session from
+#: Larger inputs are scaled down to fit before tracking: the receiver renders at the sender's
+#: size, and above this llvmpipe cannot render 30 fps (BENCHMARKS.md, "A call between hosts").
+MAX_SIZE = (1280, 720)
+#: Time a closing end gives its last message (Bye, "left") to leave.
+LINGER_S = 0.5
+#: A two-way call: the binding end sends on PORT, PORT+1 and receives on PORT+2, PORT+3.
+CALL_PORTS = 4
+
+
+class StopSignal:
+    """SIGINT and SIGTERM ask the loops to end (they look at ``stop()``); a second one
+    interrupts at once (KeyboardInterrupt)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.reason: str | None = None
+        self._old: dict[int, Any] = {}
+
+    def __call__(self) -> bool:
+        return self.reason is not None
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.reason is not None:
+            raise KeyboardInterrupt
+        self.reason = signal.Signals(signum).name
+
+    def __enter__(self) -> StopSignal:
+        for sig in self.SIGNALS:
+            self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def say(line: str) -> None:
+    """One line for the person running the command (stdout, at once: it may be a pipe)."""
+    print(line, flush=True)
+
+
+def _quiet_opencv() -> None:
+    # OpenCV prints its own warnings on stderr when a camera index does not exist; our
+    # one-line error says it better.
+    import cv2
+
+    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
+    if width < 16 or height < 16:
+        raise argparse.ArgumentTypeError(f"too small: {text}")
+    return width, height
+
+
+def _timeout(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected seconds > 0, got {text!r}")
+    return value
+
+
+# --- the sending end -------------------------------------------------------------------------
+
+
+def _add_source_arguments(p: argparse.ArgumentParser) -> None:
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--camera", type=int, metavar="N", help="send camera N (/dev/videoN)")
+    source.add_argument(
+        "--input", metavar="FILE", help="send a video file (default: the bundled clip)"
+    )
+    p.add_argument("--loop", action="store_true", help="play the file again and again")
+    p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
+    p.add_argument(
+        "--max-size",
+        type=_size,
+        default=MAX_SIZE,
+        metavar="WxH",
+        help=f"scale larger inputs down to fit (default {MAX_SIZE[0]}x{MAX_SIZE[1]})",
+    )
+
+
+@dataclass
+class _Presence:
+    """Receivers that said they are ready and have not said they left."""
+
+    active: int = 0
+
+    def on_stats(self, values: dict[str, float], tell: Callable[[str], None]) -> None:
+        if values.get("ready"):
+            self.active += 1
+            tell("a receiver joined")
+        if values.get("left"):
+            self.active = max(0, self.active - 1)
+            tell("the receiver left" + ("; waiting for another" if self.active == 0 else ""))
+
+
+class _Source:
+    """The frames to send: camera or file (looped if asked), scaled to fit, numbered on."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        from sender.capture import VideoSource, demo_clip_path
+        from sender.session import capped_size
+
+        if args.frames is not None and args.frames < 1:
+            raise ValueError(f"--frames must be at least 1, got {args.frames}")
+        self.path = None if args.camera is not None else Path(args.input or demo_clip_path())
+        self.loop = args.loop and self.path is not None
+        self.video = VideoSource(
+            args.camera if self.path is None else self.path, realtime=self.path is not None
+        )
+        self.size = capped_size(self.video.width, self.video.height, *args.max_size)
+        self.limit = args.frames
+
+    @property
+    def scaled_from(self) -> str:
+        native = (self.video.width, self.video.height)
+        return "" if native == self.size else f", scaled from {native[0]}x{native[1]}"
+
+    def frames(self) -> Iterator[Any]:
+        from sender.session import scaled
+
+        return itertools.islice(scaled(self._numbered(), self.size), self.limit)
+
+    def _numbered(self) -> Iterator[Any]:
+        from sender.capture import VideoSource
+
+        offset = 0
+        while True:
+            count = 0
+            for frame in self.video.frames():
+                count += 1
+                yield replace(frame, index=frame.index + offset)
+            if not self.loop or count == 0:
+                return
+            offset += count
+            self.video.close()
+            assert self.path is not None
+            self.video = VideoSource(self.path, realtime=True)
+
+    def close(self) -> None:
+        self.video.close()
+
+
+def _paused_while_alone(
+    frames: Iterator[Any],
+    source: _Source,
+    endpoint: Any,
+    presence: _Presence,
+    stop: Callable[[], bool],
+    tell: Callable[[str], None],
+) -> Iterator[Any]:
+    """``frames``, waiting for a new receiver whenever the last one has left."""
+    from sender.session import wait_until_ready
+
+    for frame in frames:
+        if presence.active == 0:
+            if not wait_until_ready(endpoint, math.inf, lambda: not stop()):
+                return
+            presence.active += 1
+            tell("a receiver joined")
+            source.video.resync(frame.index + 1)
+        yield frame
+
+
+def send(
+    args: argparse.Namespace,
+    address: Address,
+    keys: dict[str, Any],
+    stop: Callable[[], bool],
+    tell: Callable[[str], None] = say,
+    offset: int = 0,
+) -> dict[str, Any]:
+    """Run the sending end until its input ends or ``stop()``; returns its figures.
+
+    ``offset``: ports used from the address's PORT on (a two-way call's second direction).
+    """
+    from protocol.transport import SenderEndpoint
+    from sender.encoder import FaceEncoder
+    from sender.session import restamped, run_sender, start_session, wait_until_ready
+
+    source = _Source(args)
+    try:
+        encoder = FaceEncoder(*source.size, source.video.fps)
+        frames = source.frames()
+        snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.video.name)
+        width, height = source.size
+        endpoint = SenderEndpoint(
+            address.host, *address.ports(offset), connect=not address.bind, **keys
+        )
+        try:
+            endpoint.set_snapshot(snapshot)
+            tell(
+                f"sending {source.video.name} ({width}x{height} at {source.video.fps:g} fps"
+                f"{source.scaled_from}) as session {snapshot.session_id}; waiting for a "
+                f"receiver {address.describe(offset)}"
+            )
+            timeout = args.join_timeout or math.inf
+            if not wait_until_ready(endpoint, timeout, lambda: not stop()):
+                if stop():
+                    tell("stopped before a receiver joined")
+                    return {"frames_in": 0, "packets": 0, "stopped": True}
+                hint = (
+                    "is the other end running?"
+                    if keys.get("plain")
+                    else "is the other end running, with this end's public key as its --peer "
+                    "and its own among this end's --peer files?"
+                )
+                raise RuntimeError(
+                    f"no receiver joined within {timeout:g} s {address.describe(offset)} ({hint})"
+                )
+            tell("a receiver joined; sending")
+            source.video.resync(len(buffered))
+            presence = _Presence(active=1)
+            rest = _paused_while_alone(frames, source, endpoint, presence, stop, tell)
+            report = run_sender(
+                endpoint,
+                encoder,
+                itertools.chain(restamped(buffered), rest),
+                stop=stop,
+                on_stats=lambda values: presence.on_stats(values, tell),
+            )
+        finally:
+            endpoint.close(linger_s=LINGER_S)  # the Bye gets out
+    finally:
+        source.close()
+    why = "stopped" if report.stopped or stop() else "end of input"
+    tell(f"sent {report.frames_in} frames ({why}); said bye")
+    return {
+        "frames_in": report.frames_in,
+        "packets": report.packets,
+        "keyframe_requests": report.keyframe_requests,
+        "sender_fps": report.fps,
+        "frames_untracked": encoder.frames_untracked,
+        "width": width,
+        "height": height,
+        "fps": source.video.fps,
+        "bytes_sent": dict(endpoint.bytes_sent),
+        "bytes_received": dict(endpoint.bytes_received),
+        "stopped": report.stopped or stop(),
+    }
+
+
+def run_send(args: argparse.Namespace) -> int:
+    _quiet_opencv()
+    address = address_from(args)
+    keys = sender_keys(args)
+    with StopSignal() as stop:
+        stats = send(args, address, keys, stop)
+    _write_stats(args.stats, stats)
+    return 0
+
+
+# --- the receiving end -----------------------------------------------------------------------
+
+
+def _check_record(path: str | None) -> None:
+    if path is None:
+        return
+    folder = Path(path).parent
+    if not folder.is_dir():
+        raise ValueError(f"cannot record to {path}: folder {folder} does not exist")
+    if Path(path).suffix.lower() != ".mp4":
+        raise ValueError(f"cannot record to {path}: the recording is an .mp4 file")
+
+
+def receive(
+    args: argparse.Namespace,
+    address: Address,
+    keys: dict[str, Any],
+    stop: Callable[[], bool],
+    tell: Callable[[str], None] = say,
+    offset: int = 0,
+    sink: Any = None,
+    once: bool = False,
+) -> dict[str, Any]:
+    """Run the receiving end until ``stop()`` (or, with ``once``, the first session's end).
+
+    ``sink`` gets every rendered picture (receiver.session.FrameSink): the seam for a live
+    view. Raises TransportError when ``args.join_timeout`` passes before any sender comes.
+    """
+    from receiver.session import run_receiver
+
+    timeout = args.join_timeout or math.inf
+    report = run_receiver(
+        address.host,
+        *address.ports(offset),
+        args.record,
+        join_timeout_s=timeout,
+        rejoin_timeout_s=0.0 if once else timeout,
+        sink=sink,
+        stop=stop,
+        notify=tell,
+        bind=address.bind,
+        **keys,
+    )
+    stats = report.as_dict()
+    lat = stats["latency_ms"]
+    recorded = f" to {args.record}" if args.record and report.sessions else ""
+    # Capture times are the sender's clock: only a shared clock (one host) gives a latency.
+    latency = (
+        f", latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms"
+        if report.latency_ms and 0 <= min(report.latency_ms) and lat["max"] < 60_000
+        else ""
+    )
+    tell(
+        f"received {report.sessions} session(s), {report.frames_out} frames{recorded} "
+        f"({report.ended_by}){latency}"
+    )
+    return stats
+
+
+def run_receive(args: argparse.Namespace) -> int:
+    address = address_from(args)
+    keys = receiver_keys(args)
+    _check_record(args.record)
+    with StopSignal() as stop:
+        stats = receive(args, address, keys, stop, once=args.once)
+    _write_stats(args.stats, stats)
+    return 0
+
+
+def _write_stats(path: str | None, stats: dict[str, Any]) -> None:
+    if path:
+        Path(path).write_text(json.dumps(stats, indent=2) + "\n")
+
+
+# --- both at once ----------------------------------------------------------------------------
+
+
+def _call_receiver(
+    args: argparse.Namespace,
+    address: Address,
+    keys: dict[str, Any],
+    offset: int,
+    level: int,
+    stop_event: Any,
+    done: Any,
+    results: Any,
+) -> None:
+    """Child process (its own OpenGL context): receive the other end until told to stop."""
+    logging.basicConfig(level=level, format="%(asctime)s receive %(name)s: %(message)s")
+    with StopSignal() as stop:
+        try:
+            stats = receive(
+                args,
+                address,
+                keys,
+                lambda: stop() or stop_event.is_set(),
+                lambda line: say(f"receive: {line}"),
+                offset,
+                once=True,
+            )
+            results.put(("ok", stats))
+        except Exception as exc:  # reported as one line by the parent
+            logger.debug("receiver failed", exc_info=True)
+            results.put(("error", f"receiver: {exc}"))
+        finally:
+            done.set()
+
+
+def run_call(args: argparse.Namespace) -> int:
+    _quiet_opencv()
+    address = address_from(args, ports_used=CALL_PORTS)
+    keys_out, keys_in = sender_keys(args), receiver_keys(args)
+    _check_record(args.record)
+    # The binding end sends on PORT, PORT+1; the connecting end on PORT+2, PORT+3.
+    send_offset, receive_offset = (0, 2) if address.bind else (2, 0)
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
+    stop_event, done, results = ctx.Event(), ctx.Event(), ctx.Queue()
+    level = logging.getLogger().getEffectiveLevel()
+    child = ctx.Process(
+        target=_call_receiver,
+        args=(args, address, keys_in, receive_offset, level, stop_event, done, results),
+    )
+    child.start()
+    try:
+        with StopSignal() as stop:
+            # The call ends when either end stops: here, or the other end's Bye.
+            sent = send(
+                args,
+                address,
+                keys_out,
+                lambda: stop() or done.is_set(),
+                lambda line: say(f"send: {line}"),
+                send_offset,
+            )
+            while not (stop() or done.wait(0.2)):
+                pass  # our input ended; keep showing the other end until it hangs up
+            stop_event.set()
+            try:
+                status, received = results.get(timeout=30)
+            except queue.Empty:
+                raise RuntimeError("the receiving side did not finish in time") from None
+    finally:
+        stop_event.set()
+        child.join(timeout=10)
+        if child.is_alive():
+            child.terminate()
+    if status == "error":
+        raise RuntimeError(received)
+    _write_stats(args.stats, {"sent": sent, "received": received})
+    return 0
+
+
+# --- the command line ------------------------------------------------------------------------
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--join-timeout",
+        type=_timeout,
+        metavar="S",
+        help="give up (exit status 1) when the other end has not come within S seconds "
+        "(default: wait until Ctrl-C)",
+    )
+    p.add_argument("--stats", metavar="FILE.json", help="write the figures as JSON at the end")
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``send``, ``receive`` and ``call``."""
+    p = subparsers.add_parser(
+        "send",
+        help="send a camera or video to a receiver",
+        description="Tracks the face of a camera or a video and sends it to `facewire "
+        "receive`. Ends at the end of the input or on Ctrl-C, with a Bye.",
+    )
+    add_address_arguments(p)
+    _add_source_arguments(p)
+    add_key_arguments(p, "a receiver's public key file, or a folder of them (repeatable)")
+    _add_common(p)
+    p.set_defaults(func=run_send)
+
+    p = subparsers.add_parser(
+        "receive",
+        help="receive a call, record and measure it",
+        description="Rebuilds the face `facewire send` sends. Waits for the next session "
+        "when one ends, until Ctrl-C.",
+    )
+    add_address_arguments(p)
+    p.add_argument("--record", metavar="FILE.mp4", help="record what is rebuilt")
+    p.add_argument("--once", action="store_true", help="end when the first session ends")
+    add_key_arguments(p, "the sender's public key file")
+    _add_common(p)
+    p.set_defaults(func=run_receive)
+
+    p = subparsers.add_parser(
+        "call",
+        help="a two-way call: send and receive at once",
+        description="Sends this end's camera or video and receives the other end's. One end "
+        "binds tcp://*:PORT (it uses PORT..PORT+3), the other connects to it.",
+    )
+    add_address_arguments(p)
+    _add_source_arguments(p)
+    p.add_argument("--record", metavar="FILE.mp4", help="record the other end")
+    add_key_arguments(p, "the other end's public key file")
+    _add_common(p)
+    p.set_defaults(func=run_call)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use the facewire command")

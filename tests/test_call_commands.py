@@ -1,0 +1,302 @@
+"""``facewire send``, ``receive`` and ``call`` as a user types them, each end its own process.
+
+Real processes, real sockets on 127.0.0.1, real CURVE keys made by ``facewire keys``, real
+rendering and recording. Bad use must end with one line on stderr and exit status 1.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import signal
+import socket
+from pathlib import Path
+
+import pytest
+from cli_call import Facewire, count_frames, free_ports, run_facewire, wait_for_file
+
+from facewire.quality import read_frames, score_frames, track_all
+from sender.capture import demo_clip_path
+
+FRAMES = 120
+#: Mean face-region SSIM of a call's recording against the bundled clip, frame i against i.
+#: Measured: an aligned call 0.72; the recording 10 frames late 0.56; the first frame held
+#: throughout 0.50.
+MIN_FACE_SSIM = 0.65
+
+
+@pytest.fixture
+def keys(tmp_path: Path) -> Path:
+    folder = tmp_path / "keys"
+    folder.mkdir()
+    for name in ("alice", "bob"):
+        made = run_facewire("keys", "--out", str(folder), "--name", name)
+        assert made.returncode == 0, made.stderr
+    return folder
+
+
+def face_ssim(recording: Path, frames: int) -> float:
+    inputs = list(itertools.islice(read_frames(demo_clip_path()), frames))
+    outputs = list(read_frames(recording))
+    return score_frames(inputs, outputs, track_all(inputs)).mean_ssim("face")
+
+
+def one_line_error(result_stderr: str) -> str:
+    lines = result_stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("facewire: error: "), result_stderr
+    assert "Traceback" not in result_stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("sender_binds", [False, True], ids=["receiver-binds", "sender-binds"])
+def test_call_between_two_processes_with_keys(
+    tmp_path: Path, keys: Path, sender_binds: bool
+) -> None:
+    port = free_ports(2)
+    bound, connected = f"tcp://127.0.0.1:{port}", f"tcp://127.0.0.1:{port}"
+    record, stats = tmp_path / "call.mp4", tmp_path / "stats.json"
+    receiver = Facewire(
+        "receive",
+        *(("--connect", connected) if sender_binds else ("--bind", bound)),
+        *("--record", str(record), "--stats", str(stats), "--once"),
+        *("--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key")),
+    )
+    sender = Facewire(
+        "send",
+        *(("--bind", bound) if sender_binds else ("--connect", connected)),
+        *("--frames", str(FRAMES)),
+        *("--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key")),
+    )
+    try:
+        assert sender.wait() == 0, sender.output()
+        assert receiver.wait() == 0, receiver.output()
+    finally:
+        sender.kill()
+        receiver.kill()
+    assert sender.lines[-2:] == [
+        "a receiver joined; sending",
+        f"sent {FRAMES} frames (end of input); said bye",
+    ]
+    assert f"session ended (bye) after {FRAMES} frames" in receiver.lines, receiver.output()
+    report = json.loads(stats.read_text())
+    assert report["frames_out"] == FRAMES and report["ended_by"] == "bye"
+    assert report["malformed"] == 0 and report["sessions"] == 1
+    assert count_frames(record) == FRAMES
+    assert face_ssim(record, FRAMES) > MIN_FACE_SSIM
+
+
+def test_sigterm_on_either_end_ends_cleanly_and_the_other_end_waits(
+    tmp_path: Path, keys: Path
+) -> None:
+    port = free_ports(2)
+    record = tmp_path / "first.mp4"
+    receive_keys = ("--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key"))
+    send_keys = ("--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key"))
+    sender = Facewire("send", "--bind", f"tcp://127.0.0.1:{port}", "--loop", *send_keys)
+    first = second = None
+    try:
+        first = Facewire(
+            "receive", "--connect", f"tcp://127.0.0.1:{port}", "--record", str(record),
+            *receive_keys, name="first receiver",
+        )  # fmt: skip
+        sender.expect("a receiver joined; sending")
+        wait_for_file(record, 100_000, first)
+        # The receiver is stopped mid-call: its recording is closed with its index, and the
+        # sender says so and waits for another receiver.
+        first.signal(signal.SIGTERM)
+        assert first.wait() == 0, first.output()
+        summary = first.lines[-1]
+        assert summary.startswith("received 1 session(s), ") and "(stopped)" in summary, summary
+        recorded = int(summary.split(", ")[1].split()[0])
+        assert recorded > 0 and count_frames(record) == recorded
+        sender.expect("the receiver left; waiting for another")
+        # A new receiver is taken on; then the sender is stopped: it says bye, and the
+        # receiver says so in one line and waits for a new session.
+        stats = tmp_path / "second.json"
+        second = Facewire(
+            "receive", "--connect", f"tcp://127.0.0.1:{port}", "--record",
+            str(tmp_path / "second.mp4"), "--stats", str(stats), *receive_keys,
+            name="second receiver",
+        )  # fmt: skip
+        second.expect("session ")
+        sender.expect("a receiver joined")
+        wait_for_file(tmp_path / "second.mp4", 50_000, second)
+        sender.signal(signal.SIGINT)
+        assert sender.wait() == 0, sender.output()
+        assert "frames (stopped); said bye" in sender.lines[-1]
+        line = second.expect("session ended (bye) after")
+        assert line.endswith("; waiting for a new session")
+        assert second.process.poll() is None  # still waiting
+        second.signal(signal.SIGTERM)
+        assert second.wait() == 0, second.output()
+        report = json.loads(stats.read_text())
+        assert report["ended_by"] == "stopped" and report["sessions"] == 1
+        assert count_frames(tmp_path / "second.mp4") == report["frames_out"] > 0
+    finally:
+        for process in (sender, first, second):
+            if process is not None:
+                process.kill()
+
+
+def test_a_large_input_is_sent_at_the_capped_size(tmp_path: Path) -> None:
+    port = free_ports(2)
+    stats = tmp_path / "stats.json"
+    receiver = Facewire(
+        "receive", "--bind", f"tcp://127.0.0.1:{port}", "--plain", "--once",
+        "--record", str(tmp_path / "small.mp4"), "--stats", str(stats),
+    )  # fmt: skip
+    sender = Facewire(
+        "send", "--connect", f"tcp://127.0.0.1:{port}", "--plain", "--frames", "20",
+        "--max-size", "320x200",
+    )  # fmt: skip
+    try:
+        assert sender.wait() == 0, sender.output()
+        assert receiver.wait() == 0, receiver.output()
+    finally:
+        sender.kill()
+        receiver.kill()
+    assert "(266x200 at 30 fps, scaled from 640x480)" in sender.lines[0]
+    assert "session" in receiver.lines[1] and "266x200 at 30 fps" in receiver.lines[1]
+    first = next(read_frames(tmp_path / "small.mp4"))
+    assert first.shape == (200, 266, 3)
+
+
+def test_two_way_call(tmp_path: Path, keys: Path) -> None:
+    port = free_ports(4)
+    ends = []
+    for name, where, key, peer in (
+        ("alice", ("--bind", f"tcp://127.0.0.1:{port}"), "alice", "bob"),
+        ("bob", ("--connect", f"tcp://127.0.0.1:{port}"), "bob", "alice"),
+    ):
+        ends.append(
+            Facewire(
+                "call",
+                *where,
+                "--frames",
+                "60",
+                "--record",
+                str(tmp_path / f"{name}.mp4"),
+                "--stats",
+                str(tmp_path / f"{name}.json"),
+                "--key",
+                str(keys / f"{key}.key_secret"),
+                "--peer",
+                str(keys / f"{peer}.key"),
+                name=name,
+            )  # fmt: skip
+        )
+    try:
+        for end in ends:
+            assert end.wait() == 0, end.output()
+    finally:
+        for end in ends:
+            end.kill()
+    for name in ("alice", "bob"):
+        stats = json.loads((tmp_path / f"{name}.json").read_text())
+        assert stats["sent"]["frames_in"] == 60
+        assert stats["received"]["frames_out"] == 60 and stats["received"]["ended_by"] == "bye"
+        assert count_frames(tmp_path / f"{name}.mp4") == 60
+
+
+def _busy_port() -> tuple[socket.socket, int]:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen()
+    return s, s.getsockname()[1]
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "address-without-scheme",
+        "address-port-out-of-range",
+        "address-unknown-host",
+        "address-connect-to-star",
+        "port-in-use",
+        "no-sender-comes",
+        "no-receiver-comes",
+        "missing-key-file",
+        "missing-peer-key-file",
+        "no-keys-and-not-plain",
+        "camera-that-does-not-exist",
+        "record-into-missing-folder",
+    ],
+)
+def test_bad_use_ends_with_one_line_and_status_1(tmp_path: Path, keys: Path, case: str) -> None:
+    port = free_ports(2)
+    busy, busy_port = _busy_port()
+    here = f"tcp://127.0.0.1:{port}"
+    key = ("--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key"))
+    commands: dict[str, tuple[list[str], str]] = {
+        "address-without-scheme": (
+            ["receive", "--bind", f"127.0.0.1:{port}", "--plain"],
+            "invalid address '127.0.0.1:",
+        ),
+        "address-port-out-of-range": (
+            ["receive", "--bind", "tcp://*:65535", "--plain"],
+            "port 65535 outside 1..65534",
+        ),
+        "address-unknown-host": (
+            ["send", "--connect", "tcp://no-such-host.invalid:5555", "--plain"],
+            "cannot resolve host 'no-such-host.invalid'",
+        ),
+        "address-connect-to-star": (
+            ["receive", "--connect", "tcp://*:5555", "--plain"],
+            "'*' can only be bound",
+        ),
+        "port-in-use": (
+            ["receive", "--bind", f"tcp://127.0.0.1:{busy_port}", "--plain"],
+            "Address already in use",
+        ),
+        "no-sender-comes": (
+            ["receive", "--bind", here, "--plain", "--join-timeout", "1"],
+            f"no sender within 1 s: no published packet on {here} (is the sender running?)",
+        ),
+        "no-receiver-comes": (
+            ["send", "--connect", here, "--plain", "--join-timeout", "1"],
+            f"no receiver joined within 1 s at {here}",
+        ),
+        "missing-key-file": (
+            [
+                "receive",
+                "--bind",
+                here,
+                "--key",
+                str(tmp_path / "nope.key_secret"),
+                "--peer",
+                str(keys / "alice.key"),
+            ],
+            f"key file {tmp_path / 'nope.key_secret'} does not exist",
+        ),  # fmt: skip
+        "missing-peer-key-file": (
+            [
+                "send",
+                "--bind",
+                here,
+                "--key",
+                str(keys / "alice.key_secret"),
+                "--peer",
+                str(tmp_path / "carol.key"),
+            ],
+            f"key file {tmp_path / 'carol.key'} does not exist",
+        ),  # fmt: skip
+        "no-keys-and-not-plain": (
+            ["receive", "--bind", here],
+            "an encrypted call needs --key (your .key_secret) and --peer",
+        ),
+        "camera-that-does-not-exist": (
+            ["send", "--connect", here, "--camera", "9", "--plain"],
+            "cannot open camera 9: no such device or it is busy",
+        ),
+        "record-into-missing-folder": (
+            ["receive", "--bind", here, *key, "--record", str(tmp_path / "no" / "x.mp4")],
+            f"folder {tmp_path / 'no'} does not exist",
+        ),
+    }
+    args, expected = commands[case]
+    try:
+        result = run_facewire(*args)
+    finally:
+        busy.close()
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert expected in one_line_error(result.stderr)
