@@ -1,0 +1,67 @@
+"""A call between two hosts on this machine: sender and receiver in two network namespaces
+with their own addresses, the link between them delayed, jittered and lossy like
+``tc netem delay 40ms 10ms loss 5%`` in each direction (tests/netns_pair.py).
+
+ZeroMQ runs over TCP: a lost packet is retransmitted, so the receiver sees late frames, never
+missing ones. The receiver must still rebuild every frame (frame i of the recording against
+frame i of the input), never freeze longer than a keyframe interval, and the latency must
+show the link's delay without piling up. Skipped, with the reason, where namespaces cannot be
+made (not root, no ``ip``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from cli_call import Facewire, count_frames, run_facewire
+from netns_pair import ADDRESS_B, Netem, TwoHosts, unavailable
+from test_call_commands import MIN_FACE_SSIM, face_ssim
+
+REASON = unavailable()
+pytestmark = pytest.mark.skipif(REASON is not None, reason=f"no network namespaces: {REASON}")
+
+FRAMES = 150
+PORT = 5555
+#: No frame may wait this long (a stuck or queueing call): TCP's retransmission of a lost
+#: segment costs at least its 200 ms minimum timeout, plus the 80 ms round trip.
+MAX_LATENCY_MS = 2000.0
+
+
+def test_call_between_two_namespaces_over_a_lossy_delayed_link(tmp_path: Path) -> None:
+    keys = tmp_path / "keys"
+    keys.mkdir()
+    for name in ("alice", "bob"):
+        assert run_facewire("keys", "--out", str(keys), "--name", name).returncode == 0
+    netem = Netem(delay_ms=40, jitter_ms=10, loss=0.05)
+    record, stats = tmp_path / "call.mp4", tmp_path / "stats.json"
+    with TwoHosts(netem) as hosts:
+        print(f"link: {hosts.how}")
+        receiver = Facewire(
+            "receive", "--bind", f"tcp://{ADDRESS_B}:{PORT}", "--once", "--record", str(record),
+            "--stats", str(stats), "--key", str(keys / "bob.key_secret"), "--peer",
+            str(keys / "alice.key"), prefix=hosts.command(hosts.b), name="receiver in b",
+        )  # fmt: skip
+        sender = Facewire(
+            "send", "--connect", f"tcp://{ADDRESS_B}:{PORT}", "--frames", str(FRAMES),
+            "--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key"),
+            prefix=hosts.command(hosts.a), name="sender in a",
+        )  # fmt: skip
+        try:
+            assert sender.wait() == 0, sender.output()
+            assert receiver.wait() == 0, receiver.output()
+        finally:
+            sender.kill()
+            receiver.kill()
+    report = json.loads(stats.read_text())
+    print(receiver.lines[-1], hosts.relayed)
+    assert report["frames_out"] == FRAMES and report["ended_by"] == "bye", report
+    assert count_frames(record) == FRAMES
+    assert face_ssim(record, FRAMES) > MIN_FACE_SSIM
+    latency = report["latency_ms"]
+    # The link's delay is in the path (so the call really crossed it), and nothing queued.
+    assert latency["p50"] >= netem.delay_ms - netem.jitter_ms, latency
+    assert latency["max"] < MAX_LATENCY_MS, latency
+    for _first, length in report["freezes"]:
+        assert length <= report["keyframe_interval"], report["freezes"]
