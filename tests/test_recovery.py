@@ -200,7 +200,8 @@ def test_packets_lost_before_the_first_picture_keep_the_recording_aligned(
     tmp_path: Path, keys: Keys
 ) -> None:
     snapshot, link, report, video = lossy_call(tmp_path, keys, lambda seq: seq < 6)
-    assert link.lost == list(range(6))
+    # Every packet of the first six frames is lost (a still frame may send none).
+    assert link.lost == [seq for seq, _ in link.sent if seq < 6] and link.lost[0] == 0
     # Frame i of the recording is still frame i: the first six show the first picture.
     assert len(video) == report["frames_out"] == FRAMES
     reference = reference_frames(snapshot, link.sent)
