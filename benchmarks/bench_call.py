@@ -3,9 +3,10 @@
 Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call.py [--threads T]
 
 Sender: track + pose + wire fit + basis projection + quantise + channel coding + packet
-bytes, per frame. Receiver: decode + dequantise + wire deformation + pose + render, per frame. Accuracy: rebuilt rig markers
-against the clip's ground-truth marker positions (pixels), and the eyelid gap at the
-scripted blinks. Glass-to-glass latency over sockets comes from `facewire demo --stats`.
+bytes, per frame. Receiver: decode + dequantise + wire deformation + pose + render, per
+frame. Accuracy: rebuilt rig markers against the clip's ground-truth marker positions
+(pixels), and the eyelid gap at the scripted blinks. Glass-to-glass latency over sockets
+comes from `facewire demo --stats`.
 """
 
 from __future__ import annotations

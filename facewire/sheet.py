@@ -34,7 +34,8 @@ def heat_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _frames_at(path: Path, indices: list[int]) -> dict[int, np.ndarray]:
     capture = cv2.VideoCapture(str(path))
-    wanted, out, i = set(indices), {}, 0
+    wanted, i = set(indices), 0
+    out: dict[int, np.ndarray] = {}
     try:
         while len(out) < len(wanted):
             ok, image = capture.read()

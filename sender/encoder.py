@@ -155,9 +155,7 @@ class FaceEncoder:
         )
         mesh = self.canonical.with_vertices(pose.inverse(points))
         side = texture_size(np.ptp(points[:, 0]))
-        texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, side).unwrap(
-            frame.image, points
-        )
+        texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, side).unwrap(frame.image, points)
         background = frame.image.copy()
         self.session = SessionModel(mesh, texture, background)
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
