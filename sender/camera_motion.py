@@ -18,11 +18,14 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-#: The person is the face outline scaled by this much about its centre, and everything below
-#: that region down to the bottom of the frame.
+#: The person is the face outline scaled by this much about its centre...
 PERSON_REACH = 2.6
+#: ... and everything below the chin this many face widths wide.
+BODY_WIDTH = 4.0
 MAX_CORNERS = 300
 MIN_INLIERS = 15
+#: Least share of the followed points that must agree on the camera's motion.
+MIN_AGREEMENT = 0.6
 RANSAC_PX = 2.0
 #: No frame corner moves by more than this fraction of the frame's size.
 MAX_SHIFT = 0.15
@@ -39,9 +42,10 @@ def person_mask(shape: tuple[int, int], outline: np.ndarray) -> np.ndarray:
     mask = np.zeros((h, w), np.uint8)
     hull = cv2.convexHull(head.astype(np.float32)).reshape(-1, 2)
     cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
-    # The body: below the head region, as wide as it.
-    x0, x1 = int(max(0, head[:, 0].min())), int(min(w, head[:, 0].max() + 1))
-    y0 = int(np.clip(centre[1], 0, h))
+    # The body: below the chin, shoulders and arms reaching BODY_WIDTH face widths out.
+    half = BODY_WIDTH * np.ptp(outline[:, 0]) / 2
+    x0, x1 = int(max(0, centre[0] - half)), int(min(w, centre[0] + half + 1))
+    y0 = int(np.clip(outline[:, 1].max(), 0, h))
     mask[y0:, x0:x1] = 1
     return mask.astype(bool)
 
@@ -101,7 +105,10 @@ class CameraTracker:
         found, inlier = cv2.estimateAffinePartial2D(
             self._points[good], moved[good], method=cv2.RANSAC, ransacReprojThreshold=RANSAC_PX
         )
-        if found is None or inlier is None or int(inlier.sum()) < MIN_INLIERS:
+        # The scene must agree on one motion: when most points disagree (another person or
+        # a window's view moving), no motion is trusted.
+        agree = 0 if inlier is None else int(inlier.sum())
+        if found is None or agree < max(MIN_INLIERS, MIN_AGREEMENT * int(good.sum())):
             return self.homography
         homography = np.vstack([found, [0.0, 0.0, 1.0]])
         h, w = gray.shape
