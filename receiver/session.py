@@ -23,7 +23,7 @@ from protocol.clock import now_us
 from protocol.packets import Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.decoder import FaceDecoder
-from receiver.recorder import Mp4Recorder
+from receiver.recording import BackgroundRecorder
 
 logger = logging.getLogger(__name__)
 
@@ -74,6 +74,7 @@ class ReceiverReport:
             "receiver_fps": self.frames_out / self.busy_s if self.busy_s > 0 else 0.0,
             "latency_ms": {
                 "p50": float(np.percentile(lat, 50)),
+                "p90": float(np.percentile(lat, 90)),
                 "p99": float(np.percentile(lat, 99)),
                 "max": float(lat.max()),
             },
@@ -102,7 +103,8 @@ class RenderedFrame:
 
 
 #: Called with every rendered picture and the report so far (live figures). It runs on the
-#: receive loop's thread: it must return quickly (copy the picture and hand it on).
+#: receive loop's thread: it must return quickly, and must not change the picture (the
+#: recording may still be encoding it): hand it on, or copy it to draw on it.
 FrameSink = Callable[[RenderedFrame, ReceiverReport], None]
 
 
@@ -160,7 +162,7 @@ def run_receiver(
             report.ended_by = "stopped"
             return report
         recorder = (
-            Mp4Recorder(output, snapshot.width, snapshot.height, snapshot.fps)
+            BackgroundRecorder(output, snapshot.width, snapshot.height, snapshot.fps)
             if output is not None
             else None
         )
@@ -232,7 +234,7 @@ class _Output:
 
     def __init__(
         self,
-        recorder: Mp4Recorder | None,
+        recorder: BackgroundRecorder | None,
         sink: FrameSink | None,
         session_id: int,
         report: ReceiverReport,

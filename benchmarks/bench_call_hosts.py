@@ -1,0 +1,95 @@
+"""Glass-to-glass latency of a call between two hosts on this machine, through the commands.
+
+Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call_hosts.py [--frames N] [--runs N]
+
+``facewire receive`` and ``facewire send`` (CURVE keys, the bundled clip at 30 fps) run as
+separate processes, first on 127.0.0.1, then in two network namespaces joined by a link with
+netem's delay 40 ms ± 10 ms each way, without and with 5% loss each way (tests/netns_pair.py:
+``tc netem`` on a veth pair where the kernel has netem, else a TUN pair and a user-space
+relay applying the same model). The namespaces share CLOCK_MONOTONIC, so the receiver's
+latency (capture to rendered frame) is measured directly. Prints, per link, frames out, the
+latency percentiles, freezes (runs of frames shown stale) and the receiver's own frame rate.
+Needs root for the namespaces; prints why and measures loopback only otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the call helpers
+
+from cli_call import Facewire, free_ports, run_facewire  # noqa: E402
+from netns_pair import ADDRESS_B, Netem, TwoHosts, unavailable  # noqa: E402
+
+
+def call(folder: Path, frames: int, hosts: TwoHosts | None) -> dict:
+    keys = folder / "keys"
+    if not keys.exists():
+        keys.mkdir()
+        for name in ("alice", "bob"):
+            assert run_facewire("keys", "--out", str(keys), "--name", name).returncode == 0
+    stats = folder / "stats.json"
+    if hosts is None:
+        address, rx, tx = f"tcp://127.0.0.1:{free_ports(2)}", (), ()
+    else:
+        address = f"tcp://{ADDRESS_B}:5555"
+        rx, tx = hosts.command(hosts.b), hosts.command(hosts.a)
+    receiver = Facewire(
+        "receive", "--bind", address, "--once", "--stats", str(stats),
+        "--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key"), prefix=rx,
+    )  # fmt: skip
+    sender = Facewire(
+        "send", "--connect", address, "--frames", str(frames),
+        "--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key"), prefix=tx,
+    )  # fmt: skip
+    try:
+        if sender.wait(300) != 0 or receiver.wait(60) != 0:
+            raise SystemExit(sender.output() + "\n" + receiver.output())
+    finally:
+        sender.kill()
+        receiver.kill()
+    return json.loads(stats.read_text())
+
+
+def show(name: str, runs: list[dict], relayed: list[str]) -> None:
+    for i, r in enumerate(runs):
+        lat = r["latency_ms"]
+        freezes = [length for _, length in r["freezes"]]
+        print(
+            f"{name} run {i + 1}: {r['frames_out']} frames out ({r['ended_by']}), latency p50 "
+            f"{lat['p50']:.1f} p90 {lat['p90']:.1f} p99 {lat['p99']:.1f} max {lat['max']:.1f} ms, "
+            f"freezes {len(freezes)} (longest {max(freezes, default=0)} frames), "
+            f"receiver {r['receiver_fps']:.0f} fps"
+            + (f"; link {relayed[i]}" if relayed and relayed[i] else "")
+        )
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--runs", type=int, default=1)
+    args = p.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        show("loopback", [call(folder, args.frames, None) for _ in range(args.runs)], [])
+        reason = unavailable()
+        if reason is not None:
+            print(f"namespaces: skipped ({reason})")
+            return 0
+        for netem in (Netem(40, 10, 0.0), Netem(40, 10, 0.05)):
+            runs, relayed = [], []
+            for run in range(args.runs):
+                with TwoHosts(netem, seed=run + 1) as hosts:
+                    runs.append(call(folder, args.frames, hosts))
+                relayed.append(hosts.relayed)
+            print(f"namespaces, {hosts.how}:")
+            show(f"  netem {netem}", runs, relayed)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
