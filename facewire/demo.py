@@ -26,7 +26,7 @@ from protocol.clock import now_us
 from protocol.constants import CHANNELS
 from protocol.keys import write_keypair
 from protocol.transport import SenderEndpoint
-from receiver.recorder import Mp4Recorder
+from receiver.recorder import Mp4Recorder, crop_to
 from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 from sender.session import run_sender, wait_until_ready
@@ -179,28 +179,24 @@ def _write_compare(source: Path, output: Path, compare: Path, count: int) -> Non
     """Input (left) and reconstruction (right), frame by frame."""
     inp, out = cv2.VideoCapture(str(source)), cv2.VideoCapture(str(output))
     fps = inp.get(cv2.CAP_PROP_FPS) or 30.0
-    writer = None
+    writer: Mp4Recorder | None = None
     try:
         for _ in range(count):
             ok_a, a = inp.read()
             ok_b, b = out.read()
             if not (ok_a and ok_b):
                 break
-            pair = np.hstack([a, b])
+            pair = np.hstack([a, crop_to(b, a.shape)])
             for text, x in (("input", 8), ("facewire", a.shape[1] + 8)):
                 cv2.putText(pair, text, (x, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
             if writer is None:
-                writer = cv2.VideoWriter(
-                    str(compare), cv2.VideoWriter.fourcc(*"mp4v"), fps, pair.shape[1::-1]
-                )
-                if not writer.isOpened():
-                    raise OSError(f"cannot write video {compare}")
+                writer = Mp4Recorder(compare, pair.shape[1], pair.shape[0], fps)
             writer.write(pair)
     finally:
         inp.release()
         out.release()
         if writer is not None:
-            writer.release()
+            writer.close()
 
 
 def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:

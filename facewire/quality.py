@@ -36,6 +36,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from receiver.recorder import crop_to, padded_size
+
 if TYPE_CHECKING:
     from sender.landmarks import LandmarkTracker
 
@@ -335,6 +337,8 @@ def score_frames(
     for i, ((ref, points), (frame, was_held)) in enumerate(
         zip(pairs, aligned(outputs), strict=False)
     ):
+        if frame.shape[:2] == padded_size(ref.shape[1], ref.shape[0])[::-1]:
+            frame = crop_to(frame, ref.shape)  # an odd-sized input, recorded one pixel larger
         if frame.shape[:2] != ref.shape[:2]:
             raise ValueError(f"output frame {i} is {_size(frame)}, the input is {_size(ref)}")
         report.held += was_held

@@ -13,6 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from receiver.recorder import crop_to
+
 logger = logging.getLogger(__name__)
 
 ROWS = 6
@@ -60,7 +62,7 @@ def write_contact_sheet(source: Path, rebuilt: Path, sheet: Path, count: int) ->
     for i in indices:
         if i not in inputs or i not in outputs:
             continue
-        a, b = inputs[i], outputs[i]
+        a, b = inputs[i], crop_to(outputs[i], inputs[i].shape)
         row = np.hstack([a, b, heat_map(a, b)])
         scale = min(1.0, MAX_ROW_HEIGHT / row.shape[0])
         if scale < 1.0:

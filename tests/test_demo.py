@@ -14,6 +14,7 @@ import pytest
 from imaging import psnr
 
 from facewire.cli import main
+from receiver.recorder import crop_to
 from sender.capture import demo_clip_path
 
 FRAMES = 45
@@ -160,9 +161,10 @@ def test_missing_camera_is_one_readable_line(tmp_path: Path) -> None:
 def test_any_size_real_face(tmp_path: Path) -> None:
     """A real photographed face (not rendered by us) moving rigidly, at an odd frame size."""
     face = cv2.imread(str(Path(__file__).parent / "fixtures" / "astronaut_face.jpg"))
-    h, w = 362, 498
-    path = tmp_path / "real.mp4"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 25, (w, h))
+    h, w = 361, 497  # odd: OpenCV's MP4 writer would silently write 360x496
+    path = tmp_path / "real.avi"
+    fourcc = cv2.VideoWriter.fourcc(*"MJPG")
+    writer = cv2.VideoWriter(str(path), cv2.CAP_OPENCV_MJPEG, fourcc, 25, (w, h))
     source = []
     for i in range(30):
         m = cv2.getRotationMatrix2D((210, 210), 6 * np.sin(i / 5), 0.8 + 0.04 * np.cos(i / 7))
@@ -172,10 +174,15 @@ def test_any_size_real_face(tmp_path: Path) -> None:
         source.append(frame)
     writer.release()
     out = tmp_path / "out.mp4"
-    rc = main(["demo", "--input", str(path), "--output", str(out), "--compare", ""])  # paced
+    compare, sheet = tmp_path / "cmp.mp4", tmp_path / "sheet.png"
+    args = ["--output", str(out), "--compare", str(compare), "--sheet", str(sheet)]
+    rc = main(["demo", "--input", str(path), *args])  # paced
     assert rc == 0
-    rebuilt = _read(out)
-    assert len(rebuilt) == 30 and rebuilt[0].shape == (h, w, 3)
+    # The recording is one pixel larger (MPEG-4 needs even sides), the last row and column
+    # repeated; cut back, frame i is the input's frame i.
+    rebuilt = [crop_to(f, (h, w)) for f in _read(out)]
+    assert len(rebuilt) == 30 and _read(out)[0].shape == (h + 1, w + 1, 3)
+    assert len(_read(compare)) == 30 and cv2.imread(str(sheet)).shape[1] == 3 * w
     # The model moves only the face (the body is the still background): score the face.
     from models.mesh import load_canonical
     from sender.landmarks import LandmarkTracker
