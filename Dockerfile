@@ -12,5 +12,8 @@ COPY receiver receiver
 COPY protocol protocol
 RUN pip install --no-cache-dir .
 ENV PYOPENGL_PLATFORM=egl
+# A call: updates and snapshots on 5555 and 5556 (5557, 5558 for `facewire call`); the
+# receiver's live view on 8080.
+EXPOSE 5555-5558 8080
 WORKDIR /out
 ENTRYPOINT ["facewire"]

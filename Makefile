@@ -18,6 +18,7 @@ demo: setup
 	$(BIN)/facewire demo
 
 test: setup
+	sh scripts/install-system-deps.sh --test
 	$(BIN)/python -m pytest -q
 
 lint: setup

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 from pathlib import Path
 
+import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,12 +31,70 @@ def test_scripts_are_executable_and_valid_shell() -> None:
         subprocess.run([shell, "-n", str(script)], check=True)
 
 
-def test_install_script_is_a_no_op_when_everything_is_there() -> None:
-    # This machine already has the packages (the test suite renders with them).
+@pytest.mark.parametrize("options", [[], ["--test"]], ids=["run", "test"])
+def test_install_script_is_a_no_op_when_everything_is_there(options: list[str]) -> None:
+    # This machine already has the packages (the test suite renders with them, and `make
+    # test` ran the script with --test).
     r = subprocess.run(
-        ["sh", str(ROOT / "scripts" / "install-system-deps.sh")],
+        ["sh", str(ROOT / "scripts" / "install-system-deps.sh"), *options],
         capture_output=True,
         text=True,
         timeout=60,
     )
     assert r.returncode == 0 and r.stdout == "", r.stdout + r.stderr
+
+
+def _compose_config() -> dict:
+    """docker-compose.yml as Debian's docker-compose (1.29) reads it: its ``config`` command
+    validates the file against the Compose specification's schema and prints it resolved."""
+    tool = shutil.which("docker-compose")
+    if tool is None:
+        pytest.skip("docker-compose is not installed (scripts/install-system-deps.sh --test)")
+    r = subprocess.run(
+        [tool, "-f", str(ROOT / "docker-compose.yml"), "config"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    return yaml.safe_load(r.stdout)
+
+
+def test_compose_file_is_valid_and_runs_a_call_between_two_services() -> None:
+    from facewire.cli import build_parser
+
+    services = _compose_config()["services"]
+    receiver, sender = services["receiver"], services["sender"]
+    # Their own network, the live view's port published on the host.
+    assert receiver["networks"] == sender["networks"] == {"call": None}
+    assert {"published": 8080, "target": 8080} in receiver["ports"]
+    parser = build_parser()
+    received = parser.parse_args(receiver["command"])
+    sent = parser.parse_args(sender["command"])
+    assert received.command == "receive" and sent.command == "send"
+    # The sender plays the bundled clip (no --input, no camera) and connects to the receiver
+    # by its service name, at the port the receiver binds; keys each way.
+    assert sent.input is None and sent.camera is None and sent.loop
+    port = received.bind.rsplit(":", 1)[1]
+    assert received.bind == f"tcp://*:{port}" and sent.connect == f"tcp://receiver:{port}"
+    assert Path(received.key).stem == Path(sent.peer[0]).stem == "receiver"
+    assert Path(sent.key).stem == Path(received.peer[0]).stem == "sender"
+    assert services["keys"]["volumes"][0].startswith("keys:/keys")
+    # The image renders through EGL.
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    assert "ENV PYOPENGL_PLATFORM=egl" in dockerfile and "libegl-mesa0" in dockerfile
+
+
+def test_compose_validation_catches_a_broken_file(tmp_path: Path) -> None:
+    tool = shutil.which("docker-compose")
+    if tool is None:
+        pytest.skip("docker-compose is not installed (scripts/install-system-deps.sh --test)")
+    text = (ROOT / "docker-compose.yml").read_text().replace("ports:", "portz:")
+    (tmp_path / "docker-compose.yml").write_text(text)
+    r = subprocess.run(
+        [tool, "-f", str(tmp_path / "docker-compose.yml"), "config", "-q"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode != 0 and "portz" in r.stderr
