@@ -158,6 +158,8 @@ class _Source:
         )
         self.size = capped_size(self.video.width, self.video.height, *args.max_size)
         self.limit = args.frames
+        bundled = args.camera is None and args.input is None
+        self.name = "the bundled clip" if bundled else self.video.name
 
     @property
     def scaled_from(self) -> str:
@@ -230,7 +232,7 @@ def send(
     try:
         encoder = FaceEncoder(*source.size, source.video.fps)
         frames = source.frames()
-        snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.video.name)
+        snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.name)
         width, height = source.size
         endpoint = SenderEndpoint(
             address.host, *address.ports(offset), connect=not address.bind, **keys
@@ -238,7 +240,7 @@ def send(
         try:
             endpoint.set_snapshot(snapshot)
             tell(
-                f"sending {source.video.name} ({width}x{height} at {source.video.fps:g} fps"
+                f"sending {source.name} ({width}x{height} at {source.video.fps:g} fps"
                 f"{source.scaled_from}) as session {snapshot.session_id}; waiting for a "
                 f"receiver {address.describe(offset)}"
             )
