@@ -161,19 +161,19 @@ def test_a_large_input_is_sent_at_the_capped_size(tmp_path: Path) -> None:
     assert first.shape == (200, 266, 3)
 
 
-def test_two_way_call(tmp_path: Path, keys: Path) -> None:
+def test_two_way_call_ends_when_one_end_hangs_up(tmp_path: Path, keys: Path) -> None:
     port = free_ports(4)
     ends = []
-    for name, where, key, peer in (
-        ("alice", ("--bind", f"tcp://127.0.0.1:{port}"), "alice", "bob"),
-        ("bob", ("--connect", f"tcp://127.0.0.1:{port}"), "bob", "alice"),
+    # alice sends 60 frames and hangs up; bob sends until then (as a camera would).
+    for name, where, key, peer, length in (
+        ("alice", ("--bind", f"tcp://127.0.0.1:{port}"), "alice", "bob", ("--frames", "60")),
+        ("bob", ("--connect", f"tcp://127.0.0.1:{port}"), "bob", "alice", ("--loop",)),
     ):
         ends.append(
             Facewire(
                 "call",
                 *where,
-                "--frames",
-                "60",
+                *length,
                 "--record",
                 str(tmp_path / f"{name}.mp4"),
                 "--stats",
@@ -191,11 +191,16 @@ def test_two_way_call(tmp_path: Path, keys: Path) -> None:
     finally:
         for end in ends:
             end.kill()
-    for name in ("alice", "bob"):
-        stats = json.loads((tmp_path / f"{name}.json").read_text())
-        assert stats["sent"]["frames_in"] == 60
-        assert stats["received"]["frames_out"] == 60 and stats["received"]["ended_by"] == "bye"
-        assert count_frames(tmp_path / f"{name}.mp4") == 60
+    alice, bob = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("alice", "bob"))
+    assert alice["sent"]["frames_in"] == 60 and not alice["sent"]["stopped"]
+    assert bob["received"]["frames_out"] == 60 and bob["received"]["ended_by"] == "bye"
+    # bob's end stopped sending when alice hung up, and alice received all it sent.
+    assert bob["sent"]["stopped"] and bob["sent"]["frames_in"] > 0
+    assert alice["received"]["ended_by"] == "bye"
+    assert abs(alice["received"]["frames_out"] - bob["sent"]["frames_in"]) <= 1
+    for name, stats in (("alice", alice), ("bob", bob)):
+        assert count_frames(tmp_path / f"{name}.mp4") == stats["received"]["frames_out"]
+    assert ends[0].lines[-1].startswith("receive: received 1 session(s)")
 
 
 def _busy_port() -> tuple[socket.socket, int]:
