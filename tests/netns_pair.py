@@ -63,6 +63,8 @@ def unavailable() -> str | None:
     if made.returncode != 0:
         return f"cannot make a network namespace: {made.stderr.strip()}"
     _run("ip", "netns", "del", name, check=False)
+    if not kernel_has_netem() and not os.path.exists("/dev/net/tun"):
+        return "the kernel has neither netem (tc) nor TUN devices (/dev/net/tun) for the link"
     return None
 
 
