@@ -26,6 +26,8 @@ from protocol.packets import Heartbeat, KeyFrame, Snapshot  # noqa: E402
 from protocol.transport import SenderEndpoint  # noqa: E402
 
 MB = 1024 * 1024
+#: SOI, a 16 x 16 frame header, EOI: a texture whose header packets accept (never decoded here).
+JPEG_HEADER = bytes.fromhex("ffd8ffc0000b080010001001011100ffd9")
 STALLED_RECEIVER = """
 import sys
 from protocol.transport import ReceiverEndpoint
@@ -60,7 +62,7 @@ def snapshot(texture_bytes: int) -> Snapshot:
         height=480,
         fps=30.0,
         vertices=np.zeros((468, 3), np.float32),
-        texture=b"\xff\xd8\xff\xe0" + bytes(texture_bytes),
+        texture=JPEG_HEADER + bytes(texture_bytes),
         background=b"",
         channels=[("wire", 4, 0.001)],
         reference=[(0, 0, 0, 0)],

@@ -67,13 +67,8 @@ INT64_MAX: Final = 2**63 - 1
 
 # --- payload formats -----------------------------------------------------------------------------
 
-#: Image codecs accepted for REM patches.
+#: Image codecs accepted for REM patches (a snapshot's images may also be WebP).
 REM_CODECS: Final = ("jpeg", "png")
-JPEG_MAGIC: Final = b"\xff\xd8\xff"
-PNG_MAGIC: Final = b"\x89PNG\r\n\x1a\n"
-#: A WebP file: "RIFF", a 4-byte size, then "WEBP" (checked at offsets 0 and 8).
-RIFF_MAGIC: Final = b"RIFF"
-WEBP_MAGIC: Final = b"WEBP"
 
 # --- bandwidth accounting channels ---------------------------------------------------------------
 

@@ -9,8 +9,9 @@ runs both before it lets OpenCV near the pixels, and checks that what OpenCV ret
 the header promised.
 
 Every failure is an :class:`ImageError` (a ``ValueError``) with a precise message, whatever the
-bytes; :mod:`protocol.packets` treats it like its own ``PacketError``. OpenCV is imported only
-inside :func:`decode_image`, so ``import protocol`` works on a machine without it.
+bytes. :mod:`protocol.packets` runs :func:`check_image` on every image a packet carries, and
+turns its ImageError into a ``PacketError``. OpenCV is imported only inside
+:func:`decode_image`, so ``import protocol`` works on a machine without it.
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ from typing import Final, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from protocol.constants import MAX_IMAGE_SIDE
+
 logger = logging.getLogger(__name__)
 
-#: Largest image side accepted for decoding, in pixels. A real call needs no more (a 4K frame
-#: is 3840 x 2160). Will move to protocol.constants with protocol version 2.
-MAX_IMAGE_SIDE_DECODE: Final = 4096
+#: Largest image side accepted for decoding, in pixels (a 4K frame is 3840 x 2160).
+MAX_IMAGE_SIDE_DECODE: Final = MAX_IMAGE_SIDE
 #: Most pixels accepted for decoding (4096 x 4096: 48 MB once decoded as BGR).
-MAX_IMAGE_PIXELS_DECODE: Final = MAX_IMAGE_SIDE_DECODE * MAX_IMAGE_SIDE_DECODE
+MAX_IMAGE_PIXELS_DECODE: Final = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE
 
 PNG_SIGNATURE: Final = b"\x89PNG\r\n\x1a\n"
 JPEG_SOI: Final = b"\xff\xd8"

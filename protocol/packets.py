@@ -35,7 +35,6 @@ from protocol.constants import (
     CHANNEL_SNAPSHOT,
     INT64_MAX,
     INT64_MIN,
-    JPEG_MAGIC,
     MAX_ARRAY_LEN,
     MAX_CHANNEL_VALUE,
     MAX_CHANNELS,
@@ -46,14 +45,12 @@ from protocol.constants import (
     MAX_PARAMS,
     MAX_STR_LEN,
     MAX_VERTICES,
-    PNG_MAGIC,
     PROTOCOL_VERSION,
     REM_CODECS,
-    RIFF_MAGIC,
     UINT32_MAX,
-    WEBP_MAGIC,
     Kind,
 )
+from protocol.images import ImageError, check_image
 
 logger = logging.getLogger(__name__)
 
@@ -108,11 +105,22 @@ def _bytes(name: str, value: object) -> bytes:
     return bytes(value)
 
 
-def _image(name: str, value: object) -> bytes:
+def _image(name: str, value: object, codec: str | None = None) -> bytes:
+    """An encoded image whose header is valid and within the size limits (or empty).
+
+    Only the header is read (:func:`protocol.images.check_image`): a peer cannot make the
+    decoder spend more than that, and a receiver that decodes the pixels later knows the
+    image is at most MAX_IMAGE_SIDE on a side. ``codec`` ("jpeg", "png") is the one required.
+    """
     data = _bytes(name, value)
-    webp = data.startswith(RIFF_MAGIC) and data[8:12] == WEBP_MAGIC
-    if data and not (data.startswith(JPEG_MAGIC) or data.startswith(PNG_MAGIC) or webp):
-        raise PacketError(f"{name}: not JPEG, PNG or WebP (starts with {data[:12].hex()})")
+    if not data:
+        return data
+    try:
+        found, _, _ = check_image(data, name)
+    except ImageError as exc:
+        raise PacketError(str(exc)) from None
+    if codec is not None and found != codec:
+        raise PacketError(f"{name}: a {found} image, expected {codec}")
     return data
 
 
@@ -225,7 +233,8 @@ class Snapshot(_Packet):
     seq : the first frame number the snapshot is valid for
     vertices : (n, 3) float, cm, model space (stored and sent as float32); vertex i is
         landmark i of the canonical mesh
-    texture, background : JPEG, PNG or WebP bytes (may be empty)
+    texture, background : JPEG, PNG or WebP bytes (may be empty); the header must be valid
+        and state at most MAX_IMAGE_SIDE pixels on a side
     channels : ``(name, size, step)`` of every frame channel, in coding order
         (protocol.channels.ChannelSpec)
     rig_hash : SHA-256 (hex) of the rig data both ends must share (models.rig.rig_hash)
@@ -463,7 +472,7 @@ class RemPatch(_Packet):
     """A region-effective-for-merging patch (e.g. the eyes) in texture (UV) space.
 
     region : REM region name from the rig
-    codec : "jpeg" or "png"; data : the encoded image
+    codec : "jpeg" or "png"; data : the encoded image (header valid, within MAX_IMAGE_SIDE)
     h_peak : hue histogram peak, degrees [0, 360]; s_mean, v_mean : mean saturation and value
     in [0, 1] (HSV colour adaptation, seed 003 Eq. 2)
     """
@@ -486,10 +495,9 @@ class RemPatch(_Packet):
         codec = _str("RemPatch.codec", self.codec)
         if codec not in REM_CODECS:
             raise PacketError(f"RemPatch.codec: unknown codec {codec!r} (known: {REM_CODECS})")
-        data = _bytes("RemPatch.data", self.data)
-        magic = JPEG_MAGIC if codec == "jpeg" else PNG_MAGIC
-        if not data.startswith(magic):
-            raise PacketError(f"RemPatch.data: not a {codec} image")
+        data = _image("RemPatch.data", self.data, codec)
+        if not data:
+            raise PacketError("RemPatch.data: must not be empty")
         _set(self, "data", data)
         _set(self, "h_peak", _float("RemPatch.h_peak", self.h_peak, 0.0, 360.0))
         _set(self, "s_mean", _float("RemPatch.s_mean", self.s_mean, 0.0, 1.0))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.face_channels import WIRE, pose_from_channels
-from protocol.packets import DeltaFrame, KeyFrame, decode
+from protocol.packets import DeltaFrame, KeyFrame, PacketError, decode
 from receiver.decoder import FaceDecoder, SnapshotError
 from sender.capture import VideoSource, demo_clip_path
 
@@ -171,11 +171,12 @@ def test_decoder_survives_empty_and_refuses_huge_images(clip) -> None:
         assert decoder.background.shape == (snapshot.height, snapshot.width, 3)
     finally:
         decoder.close()
-    # A tiny PNG whose header claims 16384 x 16384 is refused before any pixel is decoded.
+    # A tiny PNG whose header claims 16384 x 16384 is refused before any pixel is decoded: a
+    # snapshot that carries it can be neither built nor decoded.
     ihdr = struct.pack(">IIBBBBB", 16384, 16384, 8, 2, 0, 0, 0)
     chunk = b"IHDR" + ihdr
     png = (
         b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk + struct.pack(">I", zlib.crc32(chunk))
     )
-    with pytest.raises(SnapshotError, match="16384"):
-        FaceDecoder(dataclasses.replace(snapshot, texture=png))
+    with pytest.raises(PacketError, match="16384x16384"):
+        dataclasses.replace(snapshot, texture=png)

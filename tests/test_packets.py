@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
 
 import msgpack
@@ -11,7 +13,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from protocol.constants import MAX_PACKET_BYTES, PNG_MAGIC
+from protocol.constants import MAX_PACKET_BYTES
+from protocol.images import ImageError, check_image, image_size
 from protocol.packets import (
     Bye,
     DeltaFrame,
@@ -27,8 +30,19 @@ from protocol.packets import (
 )
 
 FIXTURES = Path(__file__).parent / "fixtures" / "packets"
-JPEG = b"\xff\xd8\xff\xe0" + bytes(range(40)) + b"\xff\xd9"
-PNG = PNG_MAGIC + b"\x00\x00\x00\x0dIHDR" + bytes(20)
+# Small real images (made once with OpenCV from a 16 x 16 colour ramp): 16 x 16 JPEG and
+# WebP, a 12 x 9 PNG.
+IMAGES = Path(__file__).parent / "fixtures" / "images"
+JPEG = (IMAGES / "eyes.jpg").read_bytes()
+PNG = (IMAGES / "background.png").read_bytes()
+WEBP = (IMAGES / "texture.webp").read_bytes()
+
+
+def png_header(width: int, height: int) -> bytes:
+    """The signature and IHDR chunk of an 8-bit RGB PNG of this size (no pixel data)."""
+    ihdr = b"IHDR" + struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
+
 
 # --- hypothesis strategies ---------------------------------------------------------------------
 
@@ -36,7 +50,7 @@ uint32 = st.integers(0, 2**32 - 1)
 int64 = st.integers(-(2**63), 2**63 - 1)
 names = st.text(min_size=1, max_size=20)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
-images = st.sampled_from([b"", JPEG, PNG])
+images = st.sampled_from([b"", JPEG, PNG, WEBP])
 bodies = st.binary(max_size=64)
 
 key_frames = st.builds(KeyFrame, st.integers(0, 255), uint32, uint32, int64, bodies)
@@ -143,7 +157,7 @@ EXAMPLES = {
         height=480,
         fps=30.0,
         vertices=np.array([[0.0, 1.5, -2.0], [3.25, 0.0, 1.0]], np.float32),
-        texture=JPEG,
+        texture=WEBP,
         background=PNG,
         channels=[("pose.rotation", 3, 0.002), ("pose.scale", 1, 0.002), ("wire", 16, 0.05)],
         rig_hash="0123456789abcdef" * 4,
@@ -181,7 +195,7 @@ def test_fixture_fields() -> None:
     assert snap.vertices.dtype == np.float32 and snap.vertices.shape == (2, 3)
     assert snap.vertices[1].tolist() == [3.25, 0.0, 1.0]
     assert snap.channels[2] == ("wire", 16, 0.05)
-    assert snap.texture == JPEG and snap.background == PNG
+    assert snap.texture == WEBP and snap.background == PNG
 
 
 # --- errors ---------------------------------------------------------------------------------------
@@ -224,7 +238,15 @@ V1_HEARTBEAT = msgpack.packb([1, 5, 1, 2])
         (pack(6, {"fps": float("nan")}), "ReceiverStats.values['fps']: expected a finite"),
         (pack(6, {"fps": "30"}), "ReceiverStats.values['fps']: expected float, got str"),
         (pack(3, 1, "eyes", "h264", JPEG, 1.0, 0.5, 0.5), "RemPatch.codec: unknown codec"),
-        (pack(3, 1, "eyes", "jpeg", PNG, 1.0, 0.5, 0.5), "RemPatch.data: not a jpeg image"),
+        (
+            pack(3, 1, "eyes", "jpeg", PNG, 1.0, 0.5, 0.5),
+            "RemPatch.data: a png image, expected jpeg",
+        ),
+        (pack(3, 1, "eyes", "png", b"", 1.0, 0.5, 0.5), "RemPatch.data: must not be empty"),
+        (
+            pack(3, 1, "eyes", "png", png_header(16384, 16384), 1.0, 0.5, 0.5),
+            "RemPatch.data: png image of 16384x16384 pixels, each side must be in [1, 4096]",
+        ),
         (pack(3, 1, "eyes", "jpeg", JPEG, 1.0, 1.5, 0.5), "RemPatch.s_mean: 1.5 outside"),
         (b"\x25\x93\x01\x05\xd4\x01\x02", "malformed msgpack: 2 exceeds max_ext_len(0)"),
         (b"\x25\x94\x01\x05\x01\xa2\xff\xfe", "malformed msgpack: 'utf-8' codec can't decode"),
@@ -266,9 +288,18 @@ def snapshot_fields(**changes: object) -> bytes:
         ({"fps": 30}, None),  # ints are accepted where floats are expected
         ({"width": 0}, "Snapshot.width: 0 outside [1, 4096]"),
         ({"height": 16384}, "Snapshot.height: 16384 outside [1, 4096]"),
-        ({"texture": b"GIF89a"}, "Snapshot.texture: not JPEG, PNG or WebP (starts with"),
-        ({"texture": b"RIFF\x04\x00\x00\x00WAVE"}, "Snapshot.texture: not JPEG, PNG or WebP"),
-        ({"background": b"RIFF\x04\x00\x00\x00WEBP"}, None),
+        ({"texture": b"GIF89a"}, "Snapshot.texture: unknown image format (starts with 4749"),
+        ({"texture": b"RIFF\x04\x00\x00\x00WAVE"}, "Snapshot.texture: unknown image format"),
+        ({"background": b"RIFF\x04\x00\x00\x00WEBP"}, "Snapshot.background: truncated WebP"),
+        ({"texture": WEBP, "background": JPEG}, None),
+        ({"background": png_header(4096, 4096)}, None),  # the header is all decode reads
+        (
+            {"background": png_header(4097, 16)},
+            "Snapshot.background: png image of 4097x16 pixels, each side must be in [1, 4096]",
+        ),
+        ({"texture": png_header(0, 16)}, "Snapshot.texture: png image of 0x16 pixels"),
+        ({"texture": PNG[:20]}, "Snapshot.texture: truncated PNG header (20 bytes, need 33)"),
+        ({"texture": JPEG[:2] + b"\xff\xda"}, "Snapshot.texture: JPEG scan (SOS) before the"),
         ({"channels": [["wire", 4, -0.1]]}, "Snapshot.channels[0] step: must be > 0, got -0.1"),
         ({"channels": [["wire", 0, 0.1]]}, "Snapshot.channels[0] size: 0 outside [1, 8192]"),
         ({"channels": [["wire", 4]]}, "Snapshot.channels[0]: expected [name, size, step]"),
@@ -292,6 +323,45 @@ def test_snapshot_errors(changes: dict[str, object], message: str | None) -> Non
     with pytest.raises(PacketError) as info:
         decode(data)
     assert str(info.value).startswith(message), str(info.value)
+
+
+sides = st.one_of(st.integers(0, 4100), st.integers(0, 2**31 - 1))
+
+
+@given(sides, sides)
+def test_image_sizes_are_checked_at_decode(width: int, height: int) -> None:
+    data = snapshot_fields(background=png_header(width, height))
+    if 1 <= width <= 4096 and 1 <= height <= 4096:
+        assert isinstance(decode(data), Snapshot)
+        return
+    with pytest.raises(PacketError, match=f"Snapshot.background: png image of {width}x{height}"):
+        decode(data)
+
+
+@given(st.sampled_from([JPEG, PNG, WEBP]), st.integers(0, 60), st.binary(min_size=1, max_size=8))
+def test_decode_takes_an_image_exactly_when_its_header_checks(
+    image: bytes, at: int, junk: bytes
+) -> None:
+    """Damaged headers: the packet decodes if and only if protocol.images accepts the image
+    (and, in a RemPatch, finds the codec the patch names)."""
+    blob = image[:at] + junk + image[at + len(junk) :]
+    try:
+        codec: str | None = check_image(blob, "x")[0]
+    except ImageError:
+        codec = None
+    cases: list[tuple[type, bytes, bool]] = [
+        (Snapshot, snapshot_fields(texture=blob), codec is not None)
+    ]
+    if image is not WEBP:  # REM patches are JPEG or PNG
+        named = image_size(image)[0]
+        patch = pack(3, 1, "eyes", named, blob, 1.0, 0.5, 0.5)
+        cases.append((RemPatch, patch, codec == named))
+    for kind, data, good in cases:
+        if good:
+            assert isinstance(decode(data), kind)
+        else:
+            with pytest.raises(PacketError):
+                decode(data)
 
 
 def test_oversized() -> None:

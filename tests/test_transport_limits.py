@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import zmq
-from transport_helpers import TIMEOUT_MS, Context, frame, join, rss_bytes, snapshot
+from transport_helpers import JPEG, TIMEOUT_MS, Context, frame, join, rss_bytes, snapshot
 
 from protocol.constants import PROBE_INTERVAL_MS
 from protocol.packets import Heartbeat, KeyFrame, SnapshotRequest
@@ -95,7 +95,7 @@ def test_stalled_receiver_does_not_grow_sender_memory(sender: SenderEndpoint) ->
 
 
 def test_snapshot_request_flood_is_rate_limited(sender: SenderEndpoint) -> None:
-    texture = b"\xff\xd8\xff\xe0" + bytes(60_000)  # a realistic 60 kB snapshot
+    texture = JPEG + bytes(60_000)  # a realistic 60 kB snapshot
     sender.set_snapshot(snapshot(texture=texture))
     proc = child(SNAPSHOT_FLOOD, sender.ports[1], 10_000)
     try:

@@ -15,7 +15,9 @@ from protocol.packets import KeyFrame, Snapshot
 from protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 TIMEOUT_MS = 5000
-JPEG = b"\xff\xd8\xff\xe0" + bytes(16)
+#: A JPEG header (SOI, a 16 x 16 frame header, EOI): packets check image headers, and the
+#: transport never decodes pixels.
+JPEG = bytes.fromhex("ffd8ffc0000b080010001001011100ffd9")
 SESSION = 7
 Context = zmq.Context[zmq.Socket[bytes]]
 
