@@ -88,11 +88,8 @@ PEER_TIMEOUT_S: Final = 2.5
 #: During the handshake the receiver re-sends its probe this often until its SUB socket
 #: receives a published packet.
 PROBE_INTERVAL_MS: Final = 100
-#: Send and receive high-water marks, in messages, for every socket (about 5 min at 30 fps).
-HWM: Final = 10_000
 
 # --- transport v2: bounded queues, rate limits, CURVE (protocol/transport.py) -------------------
-# (HWM above is v1's and no longer used by the transport.)
 
 #: PUB send and SUB receive high-water marks, in messages (about 2 s at 30 fps). Past it libzmq
 #: drops what the sender publishes to that receiver; the receiver sees a seq gap.
