@@ -28,7 +28,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.constants import MAX_CHANNEL_VALUE, MAX_SEQ_STEP, MAX_TIME_RESIDUAL_MS
+from protocol.constants import (
+    INT64_MAX,
+    INT64_MIN,
+    MAX_CHANNEL_VALUE,
+    MAX_SEQ_STEP,
+    MAX_TIME_RESIDUAL_MS,
+    UINT32_MAX,
+)
 from protocol.packets import DeltaFrame, KeyFrame, PacketError
 from protocol.rangecoder import (
     Decoder,
@@ -172,26 +179,29 @@ class ChannelEncoder(_Codec):
     ) -> tuple[KeyFrame | DeltaFrame | None, FrameValues]:
         """The packet for frame ``seq`` (None: nothing changed) and what the receiver rebuilds.
 
-        Frame numbers must increase. The capture time the receiver rebuilds is rounded to
-        the millisecond against its prediction from the previous frame.
+        Frame numbers must increase (up to 2^32 - 1). The capture time the receiver rebuilds
+        is rounded to the millisecond against its prediction from the previous frame; one
+        further than MAX_TIME_RESIDUAL_MS from it goes in a keyframe, exactly.
         """
+        if not 0 <= seq <= UINT32_MAX or not INT64_MIN <= capture_us <= INT64_MAX:
+            raise ValueError(f"frame {seq} at {capture_us} us: seq is uint32, the time int64")
         vals = self._check(values)
         last = self.last
-        key = (
+        if (
             last is None
             or self._key_requested
             or seq - self._last_key_seq >= self.keyframe_interval
             or not 0 < seq - last.seq <= MAX_SEQ_STEP
-        )
-        if key:
+        ):
             return self._keyframe(seq, capture_us, vals)
-        assert last is not None
         step = seq - last.seq
         residuals = {n: vals[n] - last.values[n] for n in vals}
         if step < MAX_SEQ_STEP and not any(r.any() for r in residuals.values()):
             return None, FrameValues(seq, last.capture_us + step * self.frame_us, last.values)
         predicted = last.capture_us + step * self.frame_us
-        residual_ms = int(np.clip(round((capture_us - predicted) / 1000), *_TIME_RANGE))
+        residual_ms = round((capture_us - predicted) / 1000)
+        if abs(residual_ms) > MAX_TIME_RESIDUAL_MS:  # the clock jumped: send the time itself
+            return self._keyframe(seq, capture_us, vals)
         enc = Encoder()
         encode_uint(enc, step - 1, self._ctx.seq_step)
         encode_sint(enc, residual_ms, self._ctx.time)
@@ -223,9 +233,6 @@ class ChannelEncoder(_Codec):
         self._last_key_seq = seq
         self.last = FrameValues(seq, capture_us, vals, key=True)
         return packet, self.last
-
-
-_TIME_RANGE = (-MAX_TIME_RESIDUAL_MS, MAX_TIME_RESIDUAL_MS)
 
 
 class ChannelDecoder(_Codec):
@@ -282,13 +289,17 @@ class ChannelDecoder(_Codec):
         residual_ms = decode_sint(dec, self._ctx.time)
         if abs(residual_ms) > MAX_TIME_RESIDUAL_MS:
             raise PacketError(f"DeltaFrame body: time residual {residual_ms} ms out of range")
+        seq = last.seq + step
+        capture_us = last.capture_us + step * self.frame_us + 1000 * residual_ms
+        if seq > UINT32_MAX:
+            raise PacketError(f"DeltaFrame body: frame {seq} beyond 2^32 - 1")
+        if not INT64_MIN <= capture_us <= INT64_MAX:
+            raise PacketError(f"DeltaFrame body: capture time {capture_us} us beyond int64")
         vals = {}
         for spec in self.specs:
             ctx = self._ctx.delta[spec.name]
             r = np.array([decode_sint(dec, ctx[i]) for i in range(spec.size)], np.int64)
             vals[spec.name] = _checked(spec, last.values[spec.name] + r)
-        seq = last.seq + step
-        capture_us = last.capture_us + step * self.frame_us + 1000 * residual_ms
         return FrameValues(seq, capture_us, vals)
 
 

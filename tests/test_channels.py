@@ -9,9 +9,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol.channels import ChainBroken, ChannelDecoder, ChannelEncoder, ChannelSpec
-from protocol.constants import MAX_SEQ_STEP
+from protocol.constants import (
+    INT64_MAX,
+    INT64_MIN,
+    MAX_SEQ_STEP,
+    MAX_TIME_RESIDUAL_MS,
+    UINT32_MAX,
+)
 from protocol.packets import DeltaFrame, KeyFrame, PacketError, decode
-from protocol.rangecoder import Encoder, IntContexts, encode_sint
+from protocol.rangecoder import Encoder, IntContexts, encode_sint, encode_uint
 
 SPECS = [ChannelSpec("pose", 3, 0.01), ChannelSpec("wire", 8, 0.02)]
 FRAME_US = 33_333
@@ -150,3 +156,61 @@ def test_values_out_of_range_are_refused_on_both_ends() -> None:
     dec = ChannelDecoder(SPECS, FRAME_US)
     with pytest.raises(PacketError, match=r"channel 'pose': value beyond \+-16777216"):
         dec.decode(KeyFrame(0, 7, 0, 0, coder.finish()))
+
+
+def delta_body(step: int, residual_ms: int = 0, n_values: int = 11) -> bytes:
+    """A delta body coded by hand (every element's contexts fresh, as after a keyframe)."""
+    coder = Encoder()
+    encode_uint(coder, step - 1, IntContexts())
+    encode_sint(coder, residual_ms, IntContexts())
+    for _ in range(n_values):
+        encode_sint(coder, 0, IntContexts())
+    return coder.finish()
+
+
+ZEROS = {"pose": np.zeros(3, np.int64), "wire": np.zeros(8, np.int64)}
+
+
+@given(
+    st.integers(0, UINT32_MAX),
+    st.integers(1, MAX_SEQ_STEP),
+    st.one_of(st.integers(INT64_MIN, INT64_MAX), st.integers(INT64_MAX - 10**9, INT64_MAX)),
+    st.integers(-MAX_TIME_RESIDUAL_MS, MAX_TIME_RESIDUAL_MS),
+)
+def test_a_delta_past_the_frame_number_or_clock_range_is_refused(
+    seq: int, step: int, capture_us: int, residual_ms: int
+) -> None:
+    """A delta's frame number and capture time follow from the chain; beyond uint32 and
+    int64 (what a keyframe could carry) they are a PacketError, not a silent overflow."""
+    dec = ChannelDecoder(SPECS, FRAME_US)
+    dec.decode(KeyFrame(0, 7, seq, capture_us, b""))
+    delta = DeltaFrame(1, delta_body(step, residual_ms))
+    next_seq, next_us = seq + step, capture_us + step * FRAME_US + 1000 * residual_ms
+    if next_seq <= UINT32_MAX and INT64_MIN <= next_us <= INT64_MAX:
+        got = dec.decode(delta)
+        assert (got.seq, got.capture_us) == (next_seq, next_us)
+        return
+    with pytest.raises(PacketError, match="DeltaFrame body: (frame|capture time) .* beyond"):
+        dec.decode(delta)
+    assert not dec.intact  # the chain waits for a keyframe
+
+
+def test_the_encoder_keeps_to_the_ranges_the_decoder_accepts() -> None:
+    with pytest.raises(ValueError, match="seq is uint32"):
+        encoder().encode(UINT32_MAX + 1, 0, ZEROS)
+    with pytest.raises(ValueError, match="the time int64"):
+        encoder().encode(0, INT64_MAX + 1, ZEROS)
+
+
+@given(st.integers(MAX_TIME_RESIDUAL_MS - 2, 10**9), st.sampled_from([1, -1]))
+def test_a_clock_jump_beyond_the_residual_range_sends_a_keyframe(jump_ms: int, sign: int) -> None:
+    """The capture time a receiver rebuilds is never clipped: past the delta's residual range
+    it travels, exactly, in a keyframe."""
+    enc, dec = encoder(interval=1000), ChannelDecoder(SPECS, FRAME_US)
+    moved = {"pose": np.ones(3, np.int64), "wire": np.zeros(8, np.int64)}
+    for seq, capture_us, values in ((0, 10**12, ZEROS), (1, 10**12 + FRAME_US, moved)):
+        packet, sent = enc.encode(seq, capture_us + sign * 1000 * jump_ms * seq, values)
+        assert packet is not None
+        assert dec.decode(decode(bytes(packet))) == sent  # type: ignore[arg-type]
+    assert isinstance(packet, KeyFrame) == (jump_ms > MAX_TIME_RESIDUAL_MS)
+    assert abs(sent.capture_us - (10**12 + FRAME_US + sign * 1000 * jump_ms)) <= 500
