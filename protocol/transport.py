@@ -65,6 +65,7 @@ from protocol.constants import (
     SNAPSHOT_HWM,
     SNAPSHOT_MIN_INTERVAL_S,
     SNAPSHOT_RETRY_MS,
+    UINT32_MAX,
     UPDATE_HWM,
     ZAP_DOMAIN,
 )
@@ -398,12 +399,20 @@ class SenderEndpoint(_Endpoint):
             self._serve(identity, time.monotonic())
 
     def publish(
-        self, packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot
+        self,
+        packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot,
+        seq: int | None = None,
     ) -> None:
-        """Publish an update to every subscribed receiver (never blocks; drops past the HWM)."""
+        """Publish an update to every subscribed receiver (never blocks; drops past the HWM).
+
+        ``seq`` is the frame number of a DeltaFrame (it carries none; a KeyFrame's is its
+        own): heartbeats then tell the last frame published, whichever kind it came in.
+        """
         self._check_open()
         if not isinstance(packet, UPDATE_KINDS):
             raise TypeError(f"{type(packet).__name__} is not an update packet")
+        if seq is not None and not 0 <= seq <= UINT32_MAX:
+            raise ValueError(f"frame number {seq} outside [0, {UINT32_MAX}]")
         data = bytes(packet)
         # Reading EVENTS makes libzmq take in its pending commands now (a plain send only does
         # so about once a millisecond): it learns how far its queues were read, and does not
@@ -414,6 +423,8 @@ class SenderEndpoint(_Endpoint):
         self._last_publish = self._clock()
         if isinstance(packet, KeyFrame):
             self._last_seq = packet.seq
+        elif isinstance(packet, DeltaFrame) and seq is not None:
+            self._last_seq = seq
 
     def heartbeat_if_idle(self) -> bool:
         """Publish a Heartbeat if nothing was published for HEARTBEAT_INTERVAL_S; True if sent."""

@@ -208,6 +208,29 @@ def test_peer_lost_after_heartbeats_stop(context: Context) -> None:
         assert receiver.peer_alive
 
 
+def test_heartbeats_tell_the_last_frame_published(context: Context) -> None:
+    clock = FakeClock()
+    sender = SenderEndpoint(context=context, clock=clock, plain=True)
+    sender.set_snapshot(snapshot())
+    with sender, receiver_for(sender, context) as receiver:
+        join(sender, receiver)
+        sent = [(frame(10), None), (DeltaFrame(11, b"\x01"), 12), (DeltaFrame(12, b"\x02"), 15)]
+        for packet, seq in sent:
+            sender.publish(packet, seq=seq)
+        sender.publish(DeltaFrame(13, b"\x03"))  # a delta without its number changes nothing
+        clock.t += HEARTBEAT_INTERVAL_S
+        assert sender.heartbeat_if_idle()
+        heartbeats: list[Heartbeat] = []
+        while not heartbeats or heartbeats[-1].sent_us != round(clock.t * 1e6):
+            packet = receiver.recv(TIMEOUT_MS)
+            assert packet is not None
+            if isinstance(packet, Heartbeat):
+                heartbeats.append(packet)
+        assert heartbeats[-1].seq == 15  # not 10, the last keyframe's
+        with pytest.raises(ValueError, match="frame number 4294967296 outside"):
+            sender.publish(DeltaFrame(14, b""), seq=2**32)
+
+
 def test_fetch_snapshot_times_out_without_sender(context: Context) -> None:
     with SenderEndpoint(context=context, plain=True) as probe_ports:
         pub, snap = probe_ports.ports
