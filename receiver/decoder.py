@@ -31,7 +31,7 @@ from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from protocol.images import ImageError, decode_image
-from protocol.packets import DeltaFrame, KeyFrame, Snapshot
+from protocol.packets import DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.quant import dequantise
 from receiver.surround import SurroundWarp
 
@@ -48,6 +48,10 @@ MISSING_TEXTURE_SIZE = 64
 #: Width of the band inside the face outline where the rendered face fades into the
 #: background, as a fraction of the face's width.
 FEATHER = 0.06
+#: Farthest a rebuilt vertex may be from the image origin, in pixels. Frames are at most 4096
+#: px wide: a face beyond this is no picture, only a hostile or broken value (a pose scale of
+#: e^700 px/cm overflows the renderer; one of e^710, or 0, is no pose at all).
+MAX_VERTEX_PX = 2.0**20
 
 
 def _image(data: bytes, what: str, fallback_size: tuple[int, int]) -> np.ndarray:
@@ -104,6 +108,18 @@ class FaceDecoder:
         )
         if self.background.shape[:2] != (snapshot.height, snapshot.width):
             self.background = cv2.resize(self.background, (snapshot.width, snapshot.height))
+        reference = FrameValues(
+            snapshot.seq,
+            0,
+            {
+                s.name: np.asarray(v, np.int64)
+                for s, v in zip(self.specs, snapshot.reference, strict=True)
+            },
+        )
+        try:
+            at_snapshot = self._drawable(reference)
+        except PacketError as exc:
+            raise SnapshotError(f"snapshot reference: {exc}") from None
         from receiver.render import FaceRenderer  # OpenGL only where it is needed
 
         self.renderer = FaceRenderer(
@@ -117,22 +133,36 @@ class FaceDecoder:
         # Where the snapshot frame showed the face outline: the surroundings of the head are
         # carried from there to wherever the face is drawn.
         self._outline = self.mesh.outline
-        reference = FrameValues(
-            snapshot.seq,
-            0,
-            {
-                s.name: np.asarray(v, np.int64)
-                for s, v in zip(self.specs, snapshot.reference, strict=True)
-            },
-        )
-        at_snapshot = self.image_vertices(reference)
         self.surround = SurroundWarp(self.background, at_snapshot[self._outline, :2])
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
         self.renderer.render(at_snapshot)
 
     def decode(self, packet: KeyFrame | DeltaFrame) -> FrameValues:
-        """Channel values of a frame packet (raises ChainBroken after a gap, PacketError)."""
-        return self.channels.decode(packet)
+        """Channel values of a frame packet that gives a face to draw.
+
+        Raises ChainBroken after a gap, and PacketError for a body that does not decode or
+        whose values draw no face (see :meth:`_drawable`); either way the chain waits for
+        the next keyframe.
+        """
+        values = self.channels.decode(packet)
+        try:
+            self._drawable(values)
+        except PacketError:
+            self.channels = ChannelDecoder(self.specs, self.channels.frame_us)  # chain broken
+            raise
+        return values
+
+    def _drawable(self, values: FrameValues) -> np.ndarray:
+        """:meth:`image_vertices`, or PacketError when there is no face to draw: a pose
+        scale of 0 or infinity, or vertices beyond MAX_VERTEX_PX (or not finite)."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            try:
+                vertices = self.image_vertices(values)
+            except ValueError as exc:  # Pose refuses the scale
+                raise PacketError(f"frame {values.seq}: no pose ({exc})") from None
+        if not np.all(np.abs(vertices) <= MAX_VERTEX_PX):  # NaN fails too
+            raise PacketError(f"frame {values.seq}: vertices beyond {MAX_VERTEX_PX:.0f} px")
+        return vertices
 
     def parameters(self, values: FrameValues) -> tuple[Pose, np.ndarray]:
         """Dequantised head pose and wire parameters of one frame's values."""
