@@ -20,26 +20,31 @@ input goes where a receiver sends it:
 - a Snapshot's texture and background to ``protocol.images.decode_image`` (ImageError), and a
   ChannelDecoder of its own channel table, which decodes the golden frames.
 
-Live (``--live N`` cases), seeds: a real session (the bundled clip's first frames through the
-sender's FaceEncoder). A thread plays the sender on raw loopback ZeroMQ sockets: it publishes
-the cases in batches to a real ``protocol.transport.ReceiverEndpoint`` (plain), answers its
-probes and snapshot requests, and ends each batch with a marker heartbeat; a decodable delta
-is preceded by the session's keyframe with the counter before its own. The receiver side does
-what ``receiver.session`` does with each packet: frame packets go through the receive loop's
-``_decode`` to the session's ``FaceDecoder``, and every frame that decodes is rebuilt and
-rendered (``FaceDecoder.reconstruct``); RejoinNeeded is answered by ``fetch_snapshot``.
+Live (``--live N`` cases), seeds: a real session (the snapshot and packets of the bundled
+clip's first 60 frames, through the sender's FaceEncoder) and keyframes of it with one value
+at a boundary (+-2^24, +-2^17, +-2^10). A thread plays the sender on raw loopback ZeroMQ
+sockets: it publishes each case to a real ``protocol.transport.ReceiverEndpoint`` (plain),
+then a marker heartbeat, and answers probes and snapshot requests; a decodable delta is
+preceded by the session's keyframe with the counter before its own. The receiver side does
+what ``receiver.session`` does: frame packets go through the receive loop's ``_decode`` to
+the session's ``FaceDecoder``, every frame that decodes is rebuilt and rendered
+(``FaceDecoder.reconstruct``), and RejoinNeeded is answered by ``fetch_snapshot``. Each case's
+outcome: what ``recv`` returned and what became of it, or what the endpoint counted.
 
 A crash is any exception other than the documented ones; a hang is a case that takes longer
-than 1 s. Exit status 1 on any crash or hang, or if resident memory grows by more than 20 MB
-after the first tenth of the cases.
+than 1 s (one stuck for a minute dumps every stack and ends the run). Exit status 1 on any
+crash or hang, or if resident memory grows by more than 20 MB after the first tenth of the
+cases.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import faulthandler
 import logging
+import os
 import queue
 import random
 import sys
@@ -47,9 +52,10 @@ import threading
 import time
 import traceback
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -73,7 +79,6 @@ HANG_S = 1.0
 #: A case still running after this long is stuck for good: dump every stack and exit 1.
 STUCK_S = 60.0
 MAX_RSS_GROWTH_MB = 20.0
-BATCH = 32  # live cases per batch: below the receiver's queue (UPDATE_HWM), so none is dropped
 BOUNDARY = [0, 1, 0x7F, 0x80, 0xFF, 0x100, 0x7FFF, 0x8000, 0xFFFF, 0x10000, 2**31 - 1, 2**31]
 BOUNDARY += [2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1]
 
@@ -153,6 +158,7 @@ class Tally:
     """What happened to the cases of one stage."""
 
     cases: int = 0
+    crash_count: int = 0
     outcomes: Counter[str] = field(default_factory=Counter)
     crashes: dict[str, list[str]] = field(default_factory=dict)  # signature -> examples
     hangs: list[str] = field(default_factory=list)
@@ -160,7 +166,8 @@ class Tally:
     busy_s: float = 0.0
     rss: list[tuple[int, float]] = field(default_factory=list)
 
-    def crash(self, exc: BaseException, case: str, data: bytes = b"") -> None:
+    def crash(self, exc: BaseException, case: str, data: bytes) -> None:
+        self.crash_count += 1
         tb = traceback.extract_tb(exc.__traceback__)
         own = [f for f in tb if "bench_fuzz" not in f.filename] or tb
         at = f" at {Path(own[-1].filename).name}:{own[-1].lineno}" if own else ""
@@ -180,17 +187,16 @@ class Tally:
 
     def report(self, name: str, wall_s: float) -> bool:
         """Print the figures; True if the stage failed."""
-        n_crash = self.outcomes["CRASH"]
         growth = self.rss[-1][1] - self.rss[1][1] if len(self.rss) > 1 else 0.0
         print(f"\n== {name}: {self.cases} cases in {wall_s:.1f} s")
         for outcome, n in sorted(self.outcomes.items()):
             print(f"  {n:7d}  {outcome}")
-        print(f"crashes          {n_crash} ({len(self.crashes)} kinds, examples below)")
+        print(f"crashes          {self.crash_count} ({len(self.crashes)} kinds, examples below)")
         print(f"hangs (> {HANG_S:g} s)   {len(self.hangs)}")
         print(f"slowest case     {self.slowest[0] * 1000:.1f} ms ({self.slowest[1]})")
         print(
             f"throughput       {self.cases / wall_s:.0f} cases/s "
-            f"(mean {self.busy_s / max(self.cases, 1) * 1e6:.0f} us of decoding per case)"
+            f"(mean {self.busy_s / max(self.cases, 1) * 1e6:.0f} us per case, timed)"
         )
         samples = ", ".join(f"{k}: {mb:.1f}" for k, mb in self.rss)
         print(f"VmRSS MB by case {samples}")
@@ -201,25 +207,46 @@ class Tally:
                 print(f"  {example}")
         for hang in self.hangs[:10]:
             print(f"HANG {hang}")
-        return bool(n_crash or self.hangs or growth > MAX_RSS_GROWTH_MB)
+        return bool(self.crash_count or self.hangs or growth > MAX_RSS_GROWTH_MB)
+
+
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[TextIO]:
+    """Send file descriptor 2 to /dev/null (libpng and libjpeg print a line for every damaged
+    image); yields the real stderr, where a fatal signal still dumps every stack."""
+    sys.stderr.flush()
+    real = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    report_to = os.fdopen(os.dup(real), "w")
+    faulthandler.enable(report_to)
+    try:
+        yield report_to
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+        faulthandler.disable()
+        os.dup2(real, 2)
+        for fd in (real, devnull):
+            os.close(fd)
+        report_to.close()
 
 
 def run(tally: Tally, count: int, one: Callable[[int], None]) -> float:
     """Call ``one(k)`` for k in 0..count-1, sampling RSS; returns the wall time."""
     marks = {0, max(1, count // 10)} | {count * j // 10 for j in range(2, 10)}
-    start = armed = time.perf_counter()
-    faulthandler.dump_traceback_later(STUCK_S, exit=True)
-    for k in range(count):
-        if k in marks:
-            tally.rss.append((k, rss_mb()))
-        if time.perf_counter() - armed > 1.0:  # re-arming costs 50 us: about once a second
-            faulthandler.dump_traceback_later(STUCK_S, exit=True)
-            armed = time.perf_counter()
-        one(k)
-        tally.cases += 1
-    faulthandler.cancel_dump_traceback_later()
+    with native_stderr_silenced() as report_to:
+        start = armed = time.perf_counter()
+        for k in range(count):
+            if k in marks:
+                tally.rss.append((k, rss_mb()))
+            if k == 0 or time.perf_counter() - armed > 1.0:  # re-arming costs 50 us
+                faulthandler.dump_traceback_later(STUCK_S, exit=True, file=report_to)
+                armed = time.perf_counter()
+            one(k)
+            tally.cases += 1
+        wall = time.perf_counter() - start
     tally.rss.append((count, rss_mb()))
-    return time.perf_counter() - start
+    return wall
 
 
 # --- decoder stage -------------------------------------------------------------------------------
@@ -361,13 +388,18 @@ def boundary_frames(snapshot: Snapshot) -> list[KeyFrame]:
 
 
 class FakeSender(threading.Thread):
-    """Raw PUB and ROUTER sockets that publish whatever bytes they are given (plain)."""
+    """Raw PUB and ROUTER sockets (plain) that publish whatever bytes they are given.
+
+    Each case is followed by a marker heartbeat; a decodable delta is preceded by the
+    session's keyframe with the counter before its own, so that its chain is intact. Probes
+    and snapshot requests are answered at once, and the last marker is repeated after them
+    (a rejoin empties the receiver's queue).
+    """
 
     def __init__(self, snapshot: Snapshot, key: KeyFrame) -> None:
         import zmq
 
         super().__init__(daemon=True)
-        self.zmq = zmq
         self.context = zmq.Context()
         self.pub, self.router = self.context.socket(zmq.PUB), self.context.socket(zmq.ROUTER)
         for sock in (self.pub, self.router):
@@ -376,55 +408,56 @@ class FakeSender(threading.Thread):
             self.pub.bind_to_random_port("tcp://127.0.0.1"),
             self.router.bind_to_random_port("tcp://127.0.0.1"),
         )
-        self.snapshot, self.key = bytes(snapshot), key
-        self.session = snapshot.session_id
-        self.batches: queue.Queue[list[bytes] | None] = queue.Queue()
-        self.batch = 0
-        self.published = 0
+        self.snapshot, self.key, self.session = bytes(snapshot), key, snapshot.session_id
+        self.cases: queue.Queue[bytes | None] = queue.Queue()
+        self.sent = 0
 
     def is_chain_start(self, packet: KeyFrame) -> bool:
-        """Is ``packet`` a keyframe this sender put before a delta?"""
+        """Is ``packet`` the keyframe this sender puts before a delta?"""
         return dataclasses.replace(packet, counter=self.key.counter) == self.key
 
-    def marker(self, batch: int) -> Heartbeat:
-        """The heartbeat that ends batch ``batch`` (from 1): a time no sender would send."""
-        return Heartbeat(self.session, 0, -batch)
+    def marker(self, case: int) -> Heartbeat:
+        """The heartbeat after case number ``case`` (from 1; 0 before the first): a time no
+        sender would send."""
+        return Heartbeat(self.session, 0, -1 - case)
+
+    def answer(self) -> None:
+        """Answer probes and snapshot requests, each with the last marker again."""
+        while self.router.poll(0):
+            identity, *frames = self.router.recv_multipart()
+            if frames and frames[-1][:1] == b"\x28":  # SnapshotRequest
+                self.router.send_multipart([identity, self.snapshot])
+            self.pub.send(bytes(self.marker(self.sent)))
+
+    def is_marker(self, packet: Packet) -> bool:
+        return isinstance(packet, Heartbeat) and packet.seq == 0 and packet.sent_us < 0
 
     def run(self) -> None:
         while True:
             try:
-                cases = self.batches.get(timeout=0.005)
+                data = self.cases.get(timeout=0.002)
             except queue.Empty:
-                cases = []
-            if cases is None:
+                self.answer()
+                continue
+            if data is None:
                 break
-            for data in cases:
-                try:
-                    packet = decode(data)
-                except PacketError:
-                    packet = None
-                if isinstance(packet, DeltaFrame):  # so that its chain is intact
-                    counter = (packet.counter - 1) % 256
-                    self.pub.send(bytes(dataclasses.replace(self.key, counter=counter)))
-                self.pub.send(data)
-                self.published += 1
-            if cases:
-                self.batch += 1
-                self.pub.send(bytes(self.marker(self.batch)))
-            while self.router.poll(0):
-                identity, *frames = self.router.recv_multipart()
-                if frames and frames[-1][:1] == b"\x28":  # SnapshotRequest
-                    self.router.send_multipart([identity, self.snapshot])
-                # Answers a probe; after a snapshot, repeats the marker the rejoin discarded.
-                self.pub.send(bytes(self.marker(self.batch)))
+            try:
+                packet: Packet | None = decode(data)
+            except PacketError:
+                packet = None
+            if isinstance(packet, DeltaFrame):
+                counter = (packet.counter - 1) % 256
+                self.pub.send(bytes(dataclasses.replace(self.key, counter=counter)))
+            self.pub.send(data)
+            self.sent += 1
+            self.pub.send(bytes(self.marker(self.sent)))
+            self.answer()
         self.pub.close()
         self.router.close()
         self.context.term()
 
 
 def run_live(count: int, seed: int) -> bool:
-    import os
-
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     from protocol.transport import ReceiverEndpoint, RejoinNeeded
     from receiver.decoder import FaceDecoder
@@ -443,71 +476,68 @@ def run_live(count: int, seed: int) -> bool:
     decoder = FaceDecoder(snapshot)
     report = ReceiverReport()
     print(
-        f"\nlive: session of {len(packets)} packets from the bundled clip "
-        f"({snapshot.width}x{snapshot.height}), receiver ready in {time.perf_counter() - t0:.1f} s"
+        f"\nlive: {len(seeds)} seeds: the snapshot and {len(packets)} packets of a session of the "
+        f"bundled clip ({snapshot.width}x{snapshot.height}) and keyframes with boundary values; "
+        f"receiver ready in {time.perf_counter() - t0:.1f} s"
     )
     tally = Tally()
-    rejoins = 0
     offset = 10_000_000  # other cases than the decoder stage's
 
     def take(packet: Packet) -> str:
-        """What the receive loop does with one packet from ``recv``: its outcome."""
+        """What the receive loop does with a packet from ``recv``; its outcome."""
         kind = type(packet).__name__
         if not isinstance(packet, (KeyFrame, DeltaFrame)):
             return f"{kind} from recv"
         values = _decode(decoder, packet, report)
         if values is None:
-            return f"{kind} from recv, not decodable"
+            return f"{kind} from recv, refused by the FaceDecoder"
         if isinstance(packet, KeyFrame) and sender.is_chain_start(packet):
-            return "(the keyframe before a delta, decoded)"
+            return ""
         decoder.reconstruct(values)
-        return f"{kind} from recv, decoded and rendered"
+        return f"{kind} from recv, rendered"
 
-    def one_batch(b: int) -> None:
-        nonlocal rejoins
-        first = offset + b * BATCH
-        sender.batches.put([make_case(seed, first + j, seeds)[0] for j in range(BATCH)])
+    def one(k: int) -> None:
+        i = offset + k
+        data, how = make_case(seed, i, seeds)
+        case = f"case {i} ({how})"
+        before = endpoint.stats.malformed, endpoint.stats.dropped_old
+        outcomes: list[str] = []
+        sender.cases.put(data)
         deadline = time.perf_counter() + 10.0
         while time.perf_counter() < deadline:
             start = time.perf_counter()
             try:
                 packet = endpoint.recv(timeout_ms=100)
             except RejoinNeeded:
-                rejoins += 1
+                outcomes.append("RejoinNeeded, joined again")
                 endpoint.fetch_snapshot(timeout_ms=5000)
                 continue
             if packet is None:
                 continue
-            if isinstance(packet, Heartbeat) and packet.sent_us < 0 and packet.seq == 0:
-                if packet == sender.marker(b + 1):  # (an older one: repeated after a rejoin)
+            if sender.is_marker(packet):
+                if packet == sender.marker(k + 1):
                     break
                 continue
-            what = f"a {type(packet).__name__} of cases {first}..{first + BATCH - 1}"
             try:
-                tally.outcomes[take(packet)] += 1
+                outcomes.append(take(packet))
             except Exception as exc:  # noqa: BLE001 - any other exception is what we look for
-                tally.outcomes["CRASH"] += 1
-                tally.crash(exc, what, bytes(packet))
-            tally.timed(time.perf_counter() - start, what)
+                outcomes.append("CRASH")
+                tally.crash(exc, case, data)
+            tally.timed(time.perf_counter() - start, case)
         else:
-            tally.hangs.append(f"no end-of-batch marker within 10 s: cases {first}..")
+            tally.hangs.append(f"no marker within 10 s after {case}")
+        if endpoint.stats.malformed > before[0]:
+            outcomes.append("dropped by the endpoint as malformed")
+        if endpoint.stats.dropped_old > before[1]:
+            outcomes.append("dropped by the endpoint as older than the snapshot")
+        tally.outcomes[" + ".join(o for o in outcomes if o) or "nothing came out"] += 1
 
-    batches = max(1, count // BATCH)
-    wall = run(tally, batches, one_batch)
-    tally.cases = batches * BATCH
-    tally.rss = [(k * BATCH, mb) for k, mb in tally.rss]
-    sender.batches.put(None)
+    wall = run(tally, count, one)
+    sender.cases.put(None)
     sender.join()
-    stats = endpoint.stats
-    print(
-        f"live: {sender.published} cases published; endpoint: {stats.received} received, "
-        f"{stats.malformed} malformed (dropped), {stats.dropped_old} older than the snapshot; "
-        f"{rejoins} rejoins (RejoinNeeded); receive loop: {report.malformed} frame bodies "
-        f"rejected, {report.chain_breaks} chain breaks"
-    )
     decoder.close()
     endpoint.close()
-    return tally.report("live: ReceiverEndpoint, receive loop's _decode, FaceDecoder", wall)
+    return tally.report("live: ReceiverEndpoint, the receive loop's _decode, FaceDecoder", wall)
 
 
 def main() -> int:
