@@ -38,6 +38,8 @@ PNG_SIGNATURE: Final = b"\x89PNG\r\n\x1a\n"
 JPEG_SOI: Final = b"\xff\xd8"
 #: Most JPEG marker segments read before the frame header (an ICC profile may take 255).
 MAX_JPEG_SEGMENTS: Final = 1024
+#: Most PNG chunks walked (16 MiB of image data in libpng's usual 8 KiB IDAT chunks is 2048).
+MAX_PNG_CHUNKS: Final = 65536
 
 # PNG colour type -> allowed bit depths (PNG spec, 11.2.2).
 _PNG_DEPTHS: Final = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
@@ -59,7 +61,8 @@ def image_size(data: bytes) -> tuple[str, int, int]:
 
     codec is ``"png"``, ``"jpeg"`` or ``"webp"``; width and height are in pixels as the header
     states them (a JPEG may say height 0). Raises :class:`ImageError` for empty, unknown,
-    truncated or malformed headers. Reads at most a few kilobytes of headers; never decodes.
+    truncated or malformed headers, and a PNG chunk that overruns the data. Reads headers
+    only (a few kilobytes, and a PNG's chunk headers); never decodes.
     """
     data = _as_bytes(data)
     if not data:
@@ -173,7 +176,29 @@ def _png_size(data: bytes) -> tuple[int, int]:
             f"PNG compression/filter/interlace method {compression}/{filter_}/{interlace} "
             "is invalid"
         )
+    _png_chunks(data, need)
     return width, height
+
+
+def _png_chunks(data: bytes, pos: int) -> None:
+    """Walk the chunk headers from ``pos`` to IEND (or the end of the data): every chunk must
+    fit in the data. OpenCV allocates the length a chunk states before reading it: a 222-byte
+    PNG whose IDAT claimed 4 GB took 4 GB and 8 s to refuse."""
+    n = len(data)
+    for _ in range(MAX_PNG_CHUNKS):
+        if pos == n:
+            return
+        if pos + 12 > n:
+            raise ImageError(f"truncated PNG: {n - pos} bytes at offset {pos}, a chunk needs 12")
+        length, ctype = struct.unpack_from(">I4s", data, pos)
+        if length > _PNG_MAX_DIM or pos + 12 + length > n:
+            raise ImageError(
+                f"PNG chunk {ctype!r} at offset {pos} states {length} bytes, {n - pos - 12} follow"
+            )
+        if ctype == b"IEND":
+            return
+        pos += 12 + length
+    raise ImageError(f"PNG has more than {MAX_PNG_CHUNKS} chunks")
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int]:

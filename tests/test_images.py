@@ -305,6 +305,40 @@ def test_png_bomb_is_rejected_by_its_header() -> None:
     assert str(info.value) == message  # the header check, not OpenCV, rejected it
 
 
+def _idat_length(png: bytes, length: int) -> bytes:
+    """``png`` (IHDR then IDAT) with the IDAT chunk's length field set to ``length``."""
+    assert png[37:41] == b"IDAT"
+    return png[:33] + length.to_bytes(4, "big") + png[37:]
+
+
+@given(st.integers(len(PNG) - 33 - 12 + 1, 2**32 - 1))
+def test_a_png_chunk_longer_than_the_data_is_refused_by_the_header_check(length: int) -> None:
+    # OpenCV allocates what the chunk states before reading it: 0xffffffff took 4 GB and 8 s.
+    data = _idat_length(PNG, length)
+    follow = len(PNG) - 33 - 12
+    with pytest.raises(ImageError) as info:
+        decode_image(data, "x")
+    assert (
+        str(info.value)
+        == f"x: PNG chunk b'IDAT' at offset 33 states {length} bytes, {follow} follow"
+    )
+
+
+def test_png_chunk_walk() -> None:
+    idat = PNG[33 : 33 + 12 + int.from_bytes(PNG[33:37], "big")]
+    assert image_size(PNG + b"trailing bytes after IEND") == ("png", W, H)
+    assert image_size(PNG[:33]) == ("png", W, H)  # a header alone is a header
+    with pytest.raises(
+        ImageError, match=r"^truncated PNG: 5 bytes at offset 33, a chunk needs 12$"
+    ):
+        image_size(PNG[:38])
+    many = PNG[:33] + _chunk(b"tEXt", b"") * 65536 + idat + _chunk(b"IEND", b"")
+    with pytest.raises(ImageError, match=r"^PNG has more than 65536 chunks$"):
+        image_size(many)
+    few = PNG[:33] + _chunk(b"tEXt", b"") * 1000 + idat + _chunk(b"IEND", b"")
+    assert decode_image(few, "x").shape == (H, W, 3)
+
+
 def test_jpeg_claiming_20000_pixels_a_side_is_rejected() -> None:
     data = _jpeg_with_size(JPEG, 20000, 20000)
     assert image_size(data) == ("jpeg", 20000, 20000)
