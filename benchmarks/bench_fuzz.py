@@ -17,8 +17,9 @@ input goes where a receiver sends it:
 - a KeyFrame or DeltaFrame to a ``protocol.channels.ChannelDecoder`` of the golden snapshot's
   channel table (a delta right after a keyframe whose counter precedes its own, so its chain
   is intact): PacketError or ChainBroken;
-- a Snapshot's texture and background to ``protocol.images.decode_image`` (ImageError), and a
-  ChannelDecoder of its own channel table, which decodes the golden frames.
+- a Snapshot's texture and background, and a RemPatch's image, to
+  ``protocol.images.decode_image`` (ImageError); a Snapshot also makes a ChannelDecoder of
+  its own channel table, which decodes the golden frames.
 
 Live (``--live N`` cases), seeds: a real session (the snapshot and packets of the bundled
 clip's first 60 frames, through the sender's FaceEncoder) and keyframes of it with one value
@@ -33,8 +34,8 @@ outcome: what ``recv`` returned and what became of it, or what the endpoint coun
 
 A crash is any exception other than the documented ones; a hang is a case that takes longer
 than 1 s (one stuck for a minute dumps every stack and ends the run). Exit status 1 on any
-crash or hang, or if resident memory grows by more than 20 MB after the first tenth of the
-cases.
+crash or hang, if resident memory grows by more than 20 MB after the first tenth of the
+cases, or if its peak rises more than 256 MB above the start.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ from protocol.packets import (  # noqa: E402
     KeyFrame,
     Packet,
     PacketError,
+    RemPatch,
     Snapshot,
     decode,
 )
@@ -79,6 +81,8 @@ HANG_S = 1.0
 #: A case still running after this long is stuck for good: dump every stack and exit 1.
 STUCK_S = 60.0
 MAX_RSS_GROWTH_MB = 20.0
+#: A peer's image may decode to 4096 x 4096 (48 MB) and its decoder's buffers; far more is a bomb.
+MAX_PEAK_MB = 256.0
 BOUNDARY = [0, 1, 0x7F, 0x80, 0xFF, 0x100, 0x7FFF, 0x8000, 0xFFFF, 0x10000, 2**31 - 1, 2**31]
 BOUNDARY += [2**32 - 1, 2**32, 2**63 - 1, 2**63, 2**64 - 1]
 
@@ -146,11 +150,13 @@ def load_fixtures(folder: Path) -> Seeds:
 # --- measuring -----------------------------------------------------------------------------------
 
 
-def rss_mb() -> float:
+def rss_mb() -> tuple[float, float]:
+    """(resident, peak resident) memory of this process, MB (VmRSS, VmHWM)."""
+    fields = {}
     for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise OSError("no VmRSS")
+        if line.startswith(("VmRSS:", "VmHWM:")):
+            fields[line[:5]] = int(line.split()[1]) / 1024
+    return fields["VmRSS"], fields["VmHWM"]
 
 
 @dataclass
@@ -164,7 +170,7 @@ class Tally:
     hangs: list[str] = field(default_factory=list)
     slowest: tuple[float, str] = (0.0, "")
     busy_s: float = 0.0
-    rss: list[tuple[int, float]] = field(default_factory=list)
+    rss: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
 
     def crash(self, exc: BaseException, case: str, data: bytes) -> None:
         self.crash_count += 1
@@ -187,7 +193,8 @@ class Tally:
 
     def report(self, name: str, wall_s: float) -> bool:
         """Print the figures; True if the stage failed."""
-        growth = self.rss[-1][1] - self.rss[1][1] if len(self.rss) > 1 else 0.0
+        growth = self.rss[-1][1][0] - self.rss[1][1][0]
+        peak = self.rss[-1][1][1] - self.rss[0][1][0]
         print(f"\n== {name}: {self.cases} cases in {wall_s:.1f} s")
         for outcome, n in sorted(self.outcomes.items()):
             print(f"  {n:7d}  {outcome}")
@@ -198,16 +205,19 @@ class Tally:
             f"throughput       {self.cases / wall_s:.0f} cases/s "
             f"(mean {self.busy_s / max(self.cases, 1) * 1e6:.0f} us per case, timed)"
         )
-        samples = ", ".join(f"{k}: {mb:.1f}" for k, mb in self.rss)
+        samples = ", ".join(f"{k}: {mb:.1f}" for k, (mb, _) in self.rss)
         print(f"VmRSS MB by case {samples}")
         print(f"RSS growth after the first tenth: {growth:+.1f} MB")
+        print(f"peak RSS (VmHWM) above the start: {peak:+.1f} MB")
         for signature, examples in self.crashes.items():
             print(f"CRASH {signature}")
             for example in examples:
                 print(f"  {example}")
         for hang in self.hangs[:10]:
             print(f"HANG {hang}")
-        return bool(self.crash_count or self.hangs or growth > MAX_RSS_GROWTH_MB)
+        return bool(
+            self.crash_count or self.hangs or growth > MAX_RSS_GROWTH_MB or peak > MAX_PEAK_MB
+        )
 
 
 @contextlib.contextmanager
@@ -264,6 +274,17 @@ def decode_chain(channels: ChannelDecoder, key: KeyFrame, packet: KeyFrame | Del
     channels.decode(packet)
 
 
+def image(blob: bytes, what: str) -> str:
+    """Decode an image a packet carries; how it went."""
+    if not blob:
+        return f"{what} empty"
+    try:
+        decode_image(blob, what)
+    except ImageError:
+        return f"{what} ImageError"
+    return f"{what} decoded"
+
+
 class Receiver:
     """What a receiver does with received bytes, without the sockets (the decoder stage)."""
 
@@ -274,6 +295,7 @@ class Receiver:
         assert isinstance(delta, DeltaFrame)
         self.key, self.delta = key, delta
         self.channels = channel_decoder(snapshot)
+        self.snapshot(snapshot)  # imports OpenCV: not the first case's time
 
     def take(self, data: bytes) -> str:
         """The outcome of one input; anything but the documented errors propagates."""
@@ -290,21 +312,14 @@ class Receiver:
                 decode_chain(self.channels, self.key, packet)
             elif isinstance(packet, Snapshot):
                 return self.snapshot(packet)
+            elif isinstance(packet, RemPatch):
+                return f"RemPatch, {image(packet.data, 'image')}"
         except (PacketError, ChainBroken) as exc:
             return f"{kind}, {type(exc).__name__} from the channel decoder"
         return f"{kind}, accepted"
 
     def snapshot(self, snapshot: Snapshot) -> str:
-        images = []
-        for what, blob in (("texture", snapshot.texture), ("background", snapshot.background)):
-            if not blob:
-                images.append(f"{what} empty")
-                continue
-            try:
-                decode_image(blob, f"Snapshot.{what}")
-                images.append(f"{what} decoded")
-            except ImageError:
-                images.append(f"{what} ImageError")
+        images = [image(snapshot.texture, "texture"), image(snapshot.background, "background")]
         channels = channel_decoder(snapshot)
         frames = "frames decoded"
         for packet in (self.key, self.delta):
