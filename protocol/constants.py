@@ -48,6 +48,10 @@ MAX_PARAMS: Final = 8192
 #: Largest frame size in pixels along either axis (a real call needs no more; a bigger image
 #: costs gigabytes to decode and render).
 MAX_IMAGE_SIDE: Final = 4096
+#: Frame rates a snapshot may state, frames per second: 1e6 / fps, the frame interval in
+#: microseconds, must be a sane integer (1e6 / 5e-324 is infinite).
+MIN_FPS: Final = 0.01
+MAX_FPS: Final = 1000.0
 #: Most channels in a session's channel table.
 MAX_CHANNELS: Final = 32
 #: Largest range-coded body of one frame packet, in bytes.

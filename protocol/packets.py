@@ -38,6 +38,7 @@ from protocol.constants import (
     MAX_ARRAY_LEN,
     MAX_CHANNEL_VALUE,
     MAX_CHANNELS,
+    MAX_FPS,
     MAX_FRAME_BODY,
     MAX_IMAGE_SIDE,
     MAX_MAP_LEN,
@@ -45,6 +46,7 @@ from protocol.constants import (
     MAX_PARAMS,
     MAX_STR_LEN,
     MAX_VERTICES,
+    MIN_FPS,
     PROTOCOL_VERSION,
     REM_CODECS,
     UINT32_MAX,
@@ -266,10 +268,7 @@ class Snapshot(_Packet):
         _set(self, "seq", _int("Snapshot.seq", self.seq, 0, UINT32_MAX))
         _set(self, "width", _int("Snapshot.width", self.width, 1, MAX_IMAGE_SIDE))
         _set(self, "height", _int("Snapshot.height", self.height, 1, MAX_IMAGE_SIDE))
-        fps = _float("Snapshot.fps", self.fps, 0.0, 1000.0)
-        if fps <= 0:
-            raise PacketError(f"Snapshot.fps: must be > 0, got {fps}")
-        _set(self, "fps", fps)
+        _set(self, "fps", _float("Snapshot.fps", self.fps, MIN_FPS, MAX_FPS))
         v = self.vertices
         if not isinstance(v, np.ndarray) or v.ndim != 2 or v.shape[1] != 3:
             got = f"shape {v.shape}" if isinstance(v, np.ndarray) else _wire_type(v)

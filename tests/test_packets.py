@@ -284,7 +284,9 @@ def snapshot_fields(**changes: object) -> bytes:
     [
         ({"n": 2}, "Snapshot.vertices: 12 bytes for 2 vertices (expected 24)"),
         ({"n": 0, "vertices": b""}, "Snapshot.n_vertices: 0 outside [1, 200000]"),
-        ({"fps": 0.0}, "Snapshot.fps: must be > 0, got 0.0"),
+        ({"fps": 0.0}, "Snapshot.fps: 0.0 outside [0.01, 1000.0]"),
+        ({"fps": 5e-324}, "Snapshot.fps: 5e-324 outside [0.01, 1000.0]"),
+        ({"fps": 0.01}, None),
         ({"fps": 30}, None),  # ints are accepted where floats are expected
         ({"width": 0}, "Snapshot.width: 0 outside [1, 4096]"),
         ({"height": 16384}, "Snapshot.height: 16384 outside [1, 4096]"),
@@ -323,6 +325,19 @@ def test_snapshot_errors(changes: dict[str, object], message: str | None) -> Non
     with pytest.raises(PacketError) as info:
         decode(data)
     assert str(info.value).startswith(message), str(info.value)
+
+
+@given(st.floats(allow_nan=False, allow_infinity=False) | st.floats(0, 0.02))
+def test_a_snapshot_frame_rate_gives_a_frame_interval(fps: float) -> None:
+    """Whatever fps a peer states, the frame interval 1e6 / fps a receiver derives from an
+    accepted snapshot is a sane integer (a subnormal fps made it infinite)."""
+    try:
+        snapshot = decode(snapshot_fields(fps=fps))
+    except PacketError as exc:
+        assert str(exc).startswith("Snapshot.fps: ") and not 0.01 <= fps <= 1000
+        return
+    assert isinstance(snapshot, Snapshot)
+    assert 1000 <= round(1e6 / snapshot.fps) <= 10**8
 
 
 sides = st.one_of(st.integers(0, 4100), st.integers(0, 2**31 - 1))
