@@ -28,6 +28,7 @@ from sender.detector import (
     model_path,
     read_tflite,
 )
+from sender.eyes import EyeRefiner
 from sender.smoothing import LandmarkSmoother
 
 logger = logging.getLogger(__name__)
@@ -154,7 +155,9 @@ class LandmarkTracker:
     tiles per frame while no face is tracked (None: all of them in one frame, for a still
     image); ``min_face=None`` turns the tile search off. ``smoother`` (optional) filters
     the returned points over time; the next crop always comes from the unfiltered points.
-    :attr:`state` says what the last frame gave (one of ``STATES``).
+    ``refine_eyes`` runs the eye model over both eye regions (``sender.eyes``; without it
+    the face model's eyes barely blink). :attr:`state` says what the last frame gave (one of
+    ``STATES``).
     """
 
     def __init__(
@@ -165,6 +168,7 @@ class LandmarkTracker:
         min_face: float | None = 48.0,
         search_budget: int | None = 4,
         smoother: LandmarkSmoother | None = None,
+        refine_eyes: bool = True,
     ) -> None:
         self.path = Path(path) if path is not None else model_path("face_landmark.tflite")
         self.net = read_tflite(self.path)
@@ -173,6 +177,7 @@ class LandmarkTracker:
         self.search = TileSearch(self.detector, min_face) if min_face is not None else None
         self.search_budget = search_budget
         self.smoother = smoother
+        self.eyes = EyeRefiner() if refine_eyes else None
         self.state = NO_FACE
         self._crop: Crop | None = None
         self._last: Crop | None = None  # where the face was last seen
@@ -291,6 +296,8 @@ class LandmarkTracker:
         if lm is None:
             return None
         self._crop = crop_from_points(lm.points)
+        if self.eyes is not None:
+            lm = Landmarks(self.eyes.refine(frame_bgr, lm.points), lm.presence)
         if self.smoother is not None:
             if self.state == ACQUIRED:
                 self.smoother.reset()
