@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -11,7 +13,8 @@ from receiver.decoder import FaceDecoder, SnapshotError
 from sender.capture import VideoSource, demo_clip_path
 
 # neutral, smile, surprise with a blink, talking. Blinks are left out of the marker check: the
-# 468-landmark model barely closes the lids (benchmarks/bench_call.py measures it).
+# clip's closed eye is a squashed open one, which the trackers read as half open
+# (benchmarks/bench_eyes.py and bench_call.py measure it).
 FRAMES = [0, 60, 140, 220]
 
 
@@ -137,6 +140,38 @@ def test_expressions_survive_the_call(rebuilt) -> None:
     # Surprise (frame 140): the jaw opens, the corners drop.
     assert _mouth_gap(rebuilt[140]) > _mouth_gap(rebuilt[0]) + 4.0
     assert _corner_drop(rebuilt[140]) > _corner_drop(rebuilt[0]) + 5.0
+
+
+def test_a_lost_frame_holds_the_face_instead_of_snapping_to_neutral(clip) -> None:
+    # The tracker finds nothing in a black frame in the middle of the smile. The receiver
+    # keeps showing the smile (the last values, within the error budget), and the face
+    # comes back with the next frame.
+    from sender.encoder import FaceEncoder
+
+    frames, truth = clip
+    blank = 62
+    encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
+    snapshot = encoder.start(frames[0])
+    assert snapshot is not None
+    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    shown_at: dict[int, np.ndarray] = {}
+    shown = None
+    try:
+        for f in frames[: blank + 3]:
+            image = np.zeros_like(f.image) if f.index == blank else f.image
+            sent = encoder.encode(dataclasses.replace(f, image=image))
+            if sent is not None:
+                shown = decoder.decode(decode(bytes(sent)))  # type: ignore[arg-type]
+            assert shown is not None
+            shown_at[f.index] = decoder.image_vertices(shown)
+    finally:
+        decoder.close()
+    assert encoder.frames_untracked == 1
+    held = np.linalg.norm((shown_at[blank] - shown_at[blank - 1])[:, :2], axis=1)
+    assert held.max() < 1.5, held.max()
+    assert _corner_drop(shown_at[blank]) < _corner_drop(shown_at[0]) - 5.0  # still smiling
+    back = np.linalg.norm((shown_at[blank + 2] - shown_at[blank - 1])[:, :2], axis=1)
+    assert np.median(back) < 3.0, np.median(back)
 
 
 def test_decoder_refuses_a_snapshot_of_another_rig(clip) -> None:

@@ -242,3 +242,52 @@ def test_closed_renderer_refuses(mesh):
     r.close()  # idempotent
     with pytest.raises(RuntimeError, match="closed"):
         r.render(frontal(mesh.vertices, 1.0, (32, 24, 0)))
+
+
+def test_edge_pixels_follow_the_blend_formula(mesh):
+    # A flat-coloured face: after the multisample resolve an edge pixel holds K * a / 255 and
+    # the background keeps (1 - a / 255) of itself. Over black the frame is K * a / 255 and
+    # over white that plus 255 - a, so the two give each pixel's coverage a and the colour
+    # it must have. Blending the colour by alpha a second time darkens every edge pixel to
+    # K * a^2 / 255^2: a dark outline round the face.
+    colour = np.array([60.0, 170.0, 230.0])
+    flat = np.empty((64, 64, 3), np.uint8)
+    flat[:] = colour.astype(np.uint8)
+    verts = frontal(mesh.vertices)
+    black, white = np.zeros((H, W, 3), np.uint8), np.full((H, W, 3), 255, np.uint8)
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, flat) as r:
+        for feather in (0.0, 6.0):
+            over_black = r.render(verts, black.copy(), feather_px=feather)[0].astype(float)
+            over_white = r.render(verts, white.copy(), feather_px=feather)[0].astype(float)
+            grey = gradient_background()
+            over_grey = r.render(verts, grey.copy(), feather_px=feather)[0].astype(float)
+            a = (255.0 - (over_white - over_black)).mean(axis=2)  # effective coverage
+            edge = (a > 20) & (a < 235)
+            assert edge.sum() > 200, (feather, edge.sum())
+            want = colour[None, :] * (a[edge] / 255.0)[:, None]
+            assert np.abs(over_black[edge] - want).max() <= 2.0, feather
+            # And the background's share is the rest, over any background.
+            mixed = over_black + grey * (1.0 - a / 255.0)[:, :, None]
+            assert np.abs(over_grey[edge] - mixed[edge]).max() <= 2.0, feather
+
+
+def test_a_frame_owes_nothing_to_the_frame_before(mesh):
+    # Two frames through one renderer over the same background: the second is exactly what a
+    # fresh renderer draws for it alone. A renderer that drew into its stored background, or
+    # kept the last frame's pixels, leaves the old face burned in where the head was.
+    bg = gradient_background()
+    first = frontal(mesh.vertices, t=(260.0, 250.0, 500.0))
+    second = frontal(mesh.vertices, scale=12.0, t=(380.0, 230.0, 500.0))
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as used:
+        used.set_background(bg)
+        used.render(first, feather_px=6.0)
+        again, _ = used.render(second, feather_px=6.0)
+        per_frame, _ = used.render(second, bg.copy(), feather_px=6.0)
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as fresh:
+        fresh.set_background(bg)
+        alone, mask = fresh.render(second, feather_px=6.0)
+    assert np.array_equal(again, alone)
+    assert np.array_equal(per_frame, alone)
+    # Away from the second face (where the first one was, too) the background shows exactly.
+    far = ~cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.array_equal(again[far], bg[far])
