@@ -33,6 +33,7 @@ from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from protocol.images import ImageError, decode_image
 from protocol.packets import DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.quant import dequantise
+from receiver.person import person_mask
 from receiver.surround import SurroundWarp
 
 logger = logging.getLogger(__name__)
@@ -133,7 +134,9 @@ class FaceDecoder:
         # Where the snapshot frame showed the face outline: the surroundings of the head are
         # carried from there to wherever the face is drawn.
         self._outline = self.mesh.outline
-        self.surround = SurroundWarp(self.background, at_snapshot[self._outline, :2])
+        self.surround = SurroundWarp(
+            self.background, at_snapshot[self._outline, :2], person_mask(self.background)
+        )
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
         self.renderer.render(at_snapshot)
 

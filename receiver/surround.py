@@ -16,6 +16,11 @@ used to be. Instead, every frame warps the snapshot frame with a thin-plate spli
   warp fades out just beyond it, so the background stays where the camera sees it. A camera
   homography, when given, moves the whole scene.
 
+Given a person mask of the snapshot frame (``receiver.person``), only the person is warped
+this way. The scene behind is the snapshot frame with the person painted out, moved by the
+camera alone, so walls and windows near a moving head stay straight. Where the person has
+moved away, that painted-out scene shows.
+
 The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
 per frame with its centres at the current control points, evaluated on a coarse grid and
 interpolated to full size for ``cv2.remap``.
@@ -44,6 +49,15 @@ FADE = 1.3
 GRID_STEP = 16
 #: Tikhonov regulariser of the spline (pixels^2): keeps nearly coincident controls stable.
 SMOOTHING = 1e-3
+#: Where the segmentation's probability is above this, the pixel is the person's. Low: a
+#: hat or hair half taken for scene tears when the head moves.
+PERSON_THRESHOLD = 0.2
+#: The person layer reaches this fraction of the frame's width beyond the person mask, and
+#: its edge fades over as much again. The scene is painted out only inside that reach,
+#: so a frame with no motion comes out exactly as the snapshot.
+PERSON_MARGIN = 0.01
+#: The scene behind the person is painted in at most this many pixels wide, then scaled up.
+INPAINT_WIDTH = 160
 
 
 def _kernel(r2: np.ndarray) -> np.ndarray:
@@ -80,9 +94,13 @@ class SurroundWarp:
     background : (h, w, 3) uint8, the snapshot frame
     outline : (k, 2) float, image pixels: the face outline (mesh boundary loop) where the
         snapshot frame shows it
+    person : optional (h, w) float in [0, 1], where the snapshot frame shows a person. Without
+        it the whole frame is warped.
     """
 
-    def __init__(self, background: np.ndarray, outline: np.ndarray) -> None:
+    def __init__(
+        self, background: np.ndarray, outline: np.ndarray, person: np.ndarray | None = None
+    ) -> None:
         outline = np.asarray(outline, dtype=np.float64)
         if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3:
             raise ValueError(f"expected (k, 2) outline with k >= 3, got {outline.shape}")
@@ -107,9 +125,29 @@ class SurroundWarp:
         self._grid_sq = (self._grid**2).sum(1)[:, None]
         self._grid_shape = gy.shape
         self._reach = _reach_weight(self._grid, centre, STILL_REACH * (outline - centre))
+        # Output pixels the head's warp can touch: grid cells next to a node it reaches.
+        reached = self._grid[self._reach > 0]
+        lo = np.maximum(reached.min(0) - GRID_STEP, 0).astype(int) if len(reached) else (0, 0)
+        hi = (reached.max(0) + GRID_STEP + 1).astype(int) if len(reached) else (0, 0)
+        self._box = (
+            (int(lo[0]), int(min(hi[0], self.width))),
+            (int(lo[1]), int(min(hi[1], self.height))),
+        )
         self._pixels = np.meshgrid(
             np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
         )
+        # The person layer's weight rides in the fourth channel, so one remap moves both
+        # (and OpenCV remaps four channels faster than three).
+        self._layered = person is not None
+        self._scene = background
+        alpha = np.full((self.height, self.width), 255, np.uint8)
+        if person is not None:
+            if person.shape != (self.height, self.width):
+                raise ValueError(f"expected ({self.height}, {self.width}) person mask")
+            weight, painted = _person_layer(person)
+            alpha = np.round(255.0 * weight).astype(np.uint8)
+            self._scene = _paint_out(background, painted)
+        self._source = np.dstack([background, alpha])
 
     def controls(
         self, outline: np.ndarray, camera: np.ndarray | None = None
@@ -171,9 +209,61 @@ class SurroundWarp:
     def warp(self, outline: np.ndarray, camera: np.ndarray | None = None) -> np.ndarray:
         """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along."""
         map_x, map_y = self.source_map(outline, camera)
-        return cv2.remap(
-            self.background, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
+        # shows as a black band.
+        moved4 = cv2.remap(
+            self._source, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101
         )
+        moved = cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR)
+        if not self._layered:
+            return moved
+        # Out of the head's reach the person and the scene move alike (with the camera), and
+        # there they make up the snapshot frame itself: ``moved`` is already right.
+        (x0, x1), (y0, y1) = self._box
+        box = np.s_[y0:y1, x0:x1]
+        alpha = moved4[box][:, :, 3].astype(np.float32) * (1.0 / 255.0)
+        if camera is None:
+            scene = self._scene[box]
+        else:
+            to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera
+            scene = cv2.warpPerspective(
+                self._scene, to_box, (x1 - x0, y1 - y0), borderMode=cv2.BORDER_REFLECT_101
+            )
+        moved[box] = cv2.blendLinear(moved[box], scene, alpha, 1.0 - alpha)
+        return moved
+
+
+def _person_layer(person: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha, painted): the person layer's float32 weight, 1 over the person and a margin
+    and fading beyond, and the bool region of the scene to paint out (where alpha is 1)."""
+    h, w = person.shape
+    margin = max(2, round(PERSON_MARGIN * w))
+    hard = (person > PERSON_THRESHOLD).astype(np.uint8)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+    painted = cv2.dilate(hard, disc)
+    # Grown by a square of the margin, then a box blur of that width: 1 all over ``painted``.
+    square = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    grown = cv2.dilate(painted, square).astype(np.float32)
+    alpha = cv2.blur(grown, (2 * margin + 1, 2 * margin + 1))
+    return np.clip(alpha, 0.0, 1.0), painted.astype(bool)
+
+
+def _paint_out(image: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """``image`` with ``region`` painted in from its surroundings (at a reduced size: what
+    shows there is a smooth guess of the scene, and only where the person has moved away)."""
+    if not region.any():
+        return image
+    h, w = region.shape
+    scale = min(1.0, INPAINT_WIDTH / w)
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    small_region = cv2.resize(region.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    filled = cv2.inpaint(
+        small, cv2.dilate(small_region, np.ones((3, 3), np.uint8)), 3, cv2.INPAINT_TELEA
+    )
+    out = image.copy()
+    out[region] = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)[region]
+    return out
 
 
 def _reach_weight(points: np.ndarray, centre: np.ndarray, ring: np.ndarray) -> np.ndarray:

@@ -83,6 +83,57 @@ def test_an_outline_of_another_size_is_refused() -> None:
         warp.warp(outline(k=20))
 
 
+def person_scene() -> tuple[np.ndarray, np.ndarray]:
+    """A striped scene (straight lines a person would see bend) with a red person on it:
+    head over the outline, shoulders to the bottom. Returns the image and the person mask."""
+    image = np.full((H, W, 3), 200, np.uint8)
+    image[::12] = 40  # horizontal stripes
+    person = np.zeros((H, W), np.uint8)
+    cv2.ellipse(person, (240, 170), (58, 75), 0, 0, 360, 1, -1)
+    cv2.rectangle(person, (150, 240), (330, H - 1), 1, -1)
+    image[person.astype(bool)] = (30, 30, 220)
+    return image, person.astype(np.float32)
+
+
+def test_with_a_person_mask_a_still_face_leaves_the_frame_untouched() -> None:
+    image, person = person_scene()
+    warp = SurroundWarp(image, outline(), person)
+    assert np.array_equal(warp.warp(outline()), image)
+
+
+def test_with_a_person_mask_the_scene_stays_straight_and_no_old_person_shows() -> None:
+    image, person = person_scene()
+    o, shift = outline(), np.array([40.0, -10.0])
+    layered = SurroundWarp(image, o, person).warp(o + shift)
+    whole = SurroundWarp(image, o).warp(o + shift)
+    # The head moved right: the red head sits where the face now is.
+    centre = np.round(o.mean(0) + shift).astype(int)
+    assert layered[centre[1], centre[0], 2] > 180
+    # Beside the head, out of the person, the stripes have not moved (the whole-frame warp
+    # bends them there).
+    beside = np.zeros((H, W), bool)
+    beside[60:230, 365:395] = True
+    assert np.array_equal(layered[beside], image[beside])
+    assert np.abs(whole[beside].astype(int) - image[beside]).mean() > 5.0
+    # Left of the old head, where the person was and is no more: scene, not red person.
+    left = np.zeros((H, W), bool)
+    left[130:200, 185:200] = True
+    red = (layered[..., 2].astype(int) - layered[..., 1]) > 100
+    assert red[left].mean() < 0.05
+
+
+def test_person_mask_finds_a_real_face() -> None:
+    from receiver.person import person_mask
+
+    face = cv2.imread(str(FIXTURE))
+    canvas = cv2.resize(noise_image(), (960, 540))
+    canvas[60:480, 270:690] = face
+    mask = person_mask(canvas)
+    assert mask.shape == (540, 960) and mask.dtype == np.float32
+    assert mask[200:350, 400:560].mean() > 0.8  # the face
+    assert mask[:, :150].mean() < 0.1 and mask[:, -150:].mean() < 0.1  # noise, far out
+
+
 # --- in the call, on a real photographed face ----------------------------------------------------
 
 

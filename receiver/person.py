@@ -1,0 +1,47 @@
+"""Where the snapshot frame shows a person: MediaPipe's selfie segmentation through cv2.dnn.
+
+The receiver cuts the snapshot frame into the person (hair, neck, shoulders: carried by the
+head's motion) and the scene behind (still, or moved by the camera). The model sees the
+whole frame at 256x144 (landscape; a portrait frame is squeezed into it, which it tolerates)
+and gives each pixel a probability; the mask is that, resized to the frame.
+"""
+
+from __future__ import annotations
+
+import functools
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+MODEL = "selfie_segmentation_landscape.tflite"
+INPUT_SIZE = (256, 144)  # width, height
+
+
+def model_path(name: str = MODEL) -> Path:
+    return Path(str(resources.files("receiver") / "data" / name))
+
+
+@functools.cache
+def _net() -> cv2.dnn.Net:
+    # The classic engine, as for the sender's models (see sender.detector.read_tflite).
+    engine = getattr(cv2.dnn, "ENGINE_CLASSIC", None)
+    path = str(model_path())
+    return (
+        cv2.dnn.readNetFromTFLite(path)
+        if engine is None
+        else cv2.dnn.readNetFromTFLite(path, engine)
+    )
+
+
+def person_mask(frame_bgr: np.ndarray) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: how likely each pixel of ``frame_bgr`` shows a person."""
+    if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3 or frame_bgr.dtype != np.uint8:
+        raise ValueError(f"expected (h, w, 3) uint8 BGR frame, got {frame_bgr.shape}")
+    blob = cv2.dnn.blobFromImage(frame_bgr, 1 / 255.0, INPUT_SIZE, swapRB=True)
+    net = _net()
+    net.setInput(blob)
+    small = net.forward()[0, 0].astype(np.float32)
+    h, w = frame_bgr.shape[:2]
+    return np.clip(cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
