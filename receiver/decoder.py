@@ -26,6 +26,7 @@ from models.face_channels import (
     rig_hash,
 )
 from models.mesh import load_canonical
+from models.person import person_mask
 from models.pose import Pose
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
@@ -33,7 +34,6 @@ from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from protocol.images import ImageError, decode_image
 from protocol.packets import DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.quant import dequantise
-from receiver.person import person_mask
 from receiver.surround import SurroundWarp
 
 logger = logging.getLogger(__name__)

@@ -1,12 +1,12 @@
 """How the camera moved since the snapshot frame, measured on the background.
 
 Corners are picked once in the snapshot frame, away from the person (the head with a wide
-margin, and the body below it). Every frame they are followed straight from the snapshot
-frame (no drift from chaining frame to frame) with pyramidal Lucas-Kanade, starting from where
-the last estimate put them, and a similarity is fitted with RANSAC (sent as a homography, so
-a richer model can come later without a format change). Points that the person now covers
-are left out. With too few good points, or an implausibly large motion, the last estimate is
-kept.
+margin, and the body below it) and from anyone the person segmentation finds there. Every
+frame they are followed straight from the snapshot frame (no drift from chaining frame to
+frame) with pyramidal Lucas-Kanade, starting from where the last estimate put them, and a
+similarity is fitted with RANSAC (sent as a homography, so a richer model can come later
+without a format change). Points that the person now covers are left out. With too few good
+points, or an implausibly large motion, the last estimate is kept.
 """
 
 from __future__ import annotations
@@ -29,8 +29,10 @@ MIN_AGREEMENT = 0.6
 RANSAC_PX = 2.0
 #: No frame corner moves by more than this fraction of the frame's size.
 MAX_SHIFT = 0.15
-#: No frame corner moves by more than this fraction of the frame's size.
-MAX_SHIFT = 0.15
+#: Snapshot pixels whose person probability (models.person) is above this are nobody's
+#: background: a second person moving would pass for the camera.
+PEOPLE_THRESHOLD = 0.2
+LK_WINDOW = 21
 _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 
 
@@ -53,13 +55,22 @@ def person_mask(shape: tuple[int, int], outline: np.ndarray) -> np.ndarray:
 class CameraTracker:
     """Homography from the snapshot frame to each later frame, from the background.
 
-    image : (h, w, 3) uint8 BGR snapshot frame; outline : (k, 2) face outline in it, pixels
+    image : (h, w, 3) uint8 BGR snapshot frame; outline : (k, 2) face outline in it, pixels;
+    people : optional (h, w) float, how likely each pixel shows a person (models.person)
     """
 
-    def __init__(self, image: np.ndarray, outline: np.ndarray) -> None:
+    def __init__(
+        self, image: np.ndarray, outline: np.ndarray, people: np.ndarray | None = None
+    ) -> None:
         self._reference = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         shape = self._reference.shape
-        background = (~person_mask(shape, outline)).astype(np.uint8)
+        nobody = ~person_mask(shape, outline)
+        if people is not None:
+            # Grown by half the LK window: a corner whose window reaches into a person that
+            # moves on their own is pulled along.
+            anyone = (people > PEOPLE_THRESHOLD).astype(np.uint8)
+            nobody &= ~cv2.dilate(anyone, np.ones((LK_WINDOW, LK_WINDOW), np.uint8)).astype(bool)
+        background = nobody.astype(np.uint8)
         side = min(shape)
         corners = cv2.goodFeaturesToTrack(
             self._reference,
@@ -87,7 +98,7 @@ class CameraTracker:
             gray,
             self._points,
             guess.astype(np.float32).copy(),
-            winSize=(21, 21),
+            winSize=(LK_WINDOW, LK_WINDOW),
             maxLevel=3,
             criteria=_LK_CRITERIA,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,

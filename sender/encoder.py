@@ -34,6 +34,7 @@ from models.face_channels import (
     rig_hash,
 )
 from models.mesh import FaceMesh, load_canonical
+from models.person import person_mask
 from models.pose import Pose, estimate_pose
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
@@ -173,7 +174,9 @@ class FaceEncoder:
             ChannelSpec(WIRE, self.basis.size, self.steps[WIRE]),
             ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
         ]
-        self.camera = CameraTracker(frame.image, points[self.canonical.outline, :2])
+        self.camera = CameraTracker(
+            frame.image, points[self.canonical.outline, :2], person_mask(frame.image)
+        )
         self._camera_shift = np.zeros(CAMERA_SIZE)
         interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
         self._channels = ChannelEncoder(

@@ -93,3 +93,41 @@ def test_a_featureless_scene_keeps_the_camera_still() -> None:
     flat = np.full((H, W, 3), 128, np.uint8)
     tracker = CameraTracker(flat, _outline())
     assert np.array_equal(tracker.update(flat, _outline()), np.eye(3))
+
+
+def test_a_second_person_moving_is_not_taken_for_the_camera() -> None:
+    # Someone else fills the left part of the view and sways on their own while the camera
+    # drifts. The person segmentation of the snapshot frame (here: the known region) keeps
+    # their corners out; without it most points disagree and the camera's motion is lost.
+    scene = _scene()
+    other = cv2.flip(scene, -1)  # their own texture
+    still = np.array([[1.0, 0.0, -40.0], [0.0, 1.0, -40.0]])
+    region = np.zeros((H, W), bool)
+    region[:, :150] = True
+
+    def view(camera: np.ndarray, sway: float) -> np.ndarray:
+        image = cv2.warpAffine(scene, camera, (W, H), borderMode=cv2.BORDER_REFLECT)
+        moved = cv2.warpAffine(other, np.array([[1.0, 0, sway - 40], [0, 1.0, -40]]), (W, H))
+        image[region] = moved[region]
+        return image
+
+    t = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    face = np.c_[W / 2 + 40 + 15 * np.cos(t), 60 + 19 * np.sin(t)]  # a small face, top right
+    people = region.astype(np.float32)
+    with_mask = CameraTracker(view(still, 0.0), face, people)
+    without = CameraTracker(view(still, 0.0), face)
+    for step in range(1, 6):
+        shake = still.copy()
+        shake[:, 2] += [1.5 * step, -1.2 * step]
+        image = view(shake, 5.0 * step)
+        found, lost = with_mask.update(image, face), without.update(image, face)
+    truth = np.vstack([shake, [0, 0, 1]]) @ np.linalg.inv(np.vstack([still, [0, 0, 1]]))
+    grid = frame_corners(W, H)[None].astype(np.float32)
+
+    def error(h: np.ndarray) -> float:
+        return float(
+            np.abs(cv2.perspectiveTransform(grid, h) - cv2.perspectiveTransform(grid, truth)).max()
+        )
+
+    assert error(found) < 0.75
+    assert error(lost) > 3.0

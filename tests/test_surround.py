@@ -123,7 +123,7 @@ def test_with_a_person_mask_the_scene_stays_straight_and_no_old_person_shows() -
 
 
 def test_person_mask_finds_a_real_face() -> None:
-    from receiver.person import person_mask
+    from models.person import person_mask
 
     face = cv2.imread(str(FIXTURE))
     canvas = cv2.resize(noise_image(), (960, 540))

@@ -1,7 +1,8 @@
-"""Where the snapshot frame shows a person: MediaPipe's selfie segmentation through cv2.dnn.
+"""Where a frame shows a person: MediaPipe's selfie segmentation through cv2.dnn.
 
-The receiver cuts the snapshot frame into the person (hair, neck, shoulders: carried by the
-head's motion) and the scene behind (still, or moved by the camera). The model sees the
+Both ends use it on the snapshot frame. The receiver cuts that frame into the person (hair,
+neck, shoulders: carried by the head's motion) and the scene behind (still, or moved by the
+camera); the sender follows the camera's motion only on what is not a person. The model sees the
 whole frame at 256x144 (landscape; a portrait frame is squeezed into it, which it tolerates)
 and gives each pixel a probability; the mask is that, resized to the frame.
 """
@@ -20,7 +21,7 @@ INPUT_SIZE = (256, 144)  # width, height
 
 
 def model_path(name: str = MODEL) -> Path:
-    return Path(str(resources.files("receiver") / "data" / name))
+    return Path(str(resources.files("models") / "data" / name))
 
 
 @functools.cache
