@@ -3,8 +3,8 @@
 Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call.py [--threads T]
 
 Sender: track + pose + wire fit + basis projection + quantise + channel coding + packet
-bytes, per frame. Receiver: decode + dequantise + wire deformation + pose + render, per
-frame. Accuracy: rebuilt rig markers against the clip's ground-truth marker positions
+bytes, per frame. Receiver: decode + dequantise + wire deformation + pose + the warp of the
+head's surroundings (person and scene layers, camera) + render over it, per frame. Accuracy: rebuilt rig markers against the clip's ground-truth marker positions
 (pixels), and the eyelid gap at the scripted blinks. Glass-to-glass latency over sockets
 comes from `facewire demo --stats`.
 """
@@ -65,7 +65,7 @@ def main() -> None:
             shown = decoder.decode(decode(data))  # type: ignore[arg-type]
         assert shown is not None
         vertices = decoder.image_vertices(shown)
-        decoder.renderer.render(vertices)
+        decoder.reconstruct(shown)  # what a receiver draws: face, surround warp, camera
         recv.append(time.perf_counter() - t0)
         visible = truth["marker_visible"][f.index]
         err = np.linalg.norm(vertices[markers, :2] - truth["marker_xy"][f.index], axis=1)

@@ -136,9 +136,12 @@ class FaceRenderer:
         with _live_lock:
             _live_count += 1
         # pyrender reads back and linearises depth for every frame; the mask comes from
-        # alpha, so read colour only (pyrender is pinned to 0.1.45, whose private
-        # Renderer._read_main_framebuffer(scene, flags) this replaces for this instance).
+        # alpha, so read colour only, and only the face's bounding box: resolving the
+        # multisampled frame and reading it back cost 6 ms at 640x480 on llvmpipe (pyrender is
+        # pinned to 0.1.45, whose private Renderer._read_main_framebuffer(scene, flags) this
+        # replaces for this instance).
         inner = self._renderer._renderer
+        self._window = (0, 0, self.width, self.height)  # x0, y0, x1, y1 read back
         inner._read_main_framebuffer = lambda scene, flags: (self._read_rgba(inner), None)
         self._uploaded = False  # GL buffers exist only after the first render
         self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA
@@ -248,6 +251,12 @@ class FaceRenderer:
         gl[:, 2] = -v[:, 2]
         self._place_camera(float(v[:, 2].min()), float(v[:, 2].max()))
         self._set_positions(gl)
+        # Nothing is drawn outside the vertices' bounding box (plus the antialiased edge).
+        lo = np.floor(v[:, :2].min(axis=0)) - 2
+        hi = np.ceil(v[:, :2].max(axis=0)) + 3
+        x0, y0 = (int(np.clip(c, 0, n)) for c, n in zip(lo, (self.width, self.height), strict=True))
+        x1, y1 = (int(np.clip(c, 0, n)) for c, n in zip(hi, (self.width, self.height), strict=True))
+        self._window = (x0, y0, max(x0, x1), max(y0, y1))
 
         rgba, _ = self._renderer.render(self._scene, flags=self._flags)
         self._uploaded = True
@@ -299,19 +308,23 @@ class FaceRenderer:
         assert self._renderer is not None
         self._renderer._platform.make_current()
 
-    @staticmethod
-    def _read_rgba(inner: pyrender.Renderer) -> np.ndarray:
-        """Resolve the multisampled framebuffer and read (H, W, 4) uint8, top row first."""
-        width, height = inner._main_fb_dims
+    def _read_rgba(self, inner: pyrender.Renderer) -> np.ndarray:
+        """Resolve the multisampled framebuffer in ``self._window`` and read it: (y1 - y0,
+        x1 - x0, 4) uint8, top row first."""
+        x0, y0, x1, y1 = self._window
+        if x1 <= x0 or y1 <= y0:
+            return np.zeros((max(y1 - y0, 0), max(x1 - x0, 0), 4), np.uint8)
+        _, height = inner._main_fb_dims
+        gy0, gy1 = height - y1, height - y0  # GL rows start at the bottom
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb_ms)
         GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, inner._main_fb)
         GL.glBlitFramebuffer(
-            0, 0, width, height, 0, 0, width, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
+            x0, gy0, x1, gy1, x0, gy0, x1, gy1, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
         )
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb)
-        buf = GL.glReadPixels(0, 0, width, height, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
-        rgba = np.frombuffer(buf, dtype=np.uint8).reshape(height, width, 4)
-        return rgba[::-1]  # GL rows start at the bottom
+        buf = GL.glReadPixels(x0, gy0, x1 - x0, y1 - y0, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
+        rgba = np.frombuffer(buf, dtype=np.uint8).reshape(y1 - y0, x1 - x0, 4)
+        return rgba[::-1]
 
     def _place_camera(self, z_min: float, z_max: float) -> None:
         # GL window x = X - cx + W/2 must equal x + 0.5 (pixel centre), so cx = W/2 - 0.5;
@@ -350,31 +363,35 @@ class FaceRenderer:
         self, rgba: np.ndarray, background: np.ndarray | None, feather_px: float
     ) -> tuple[np.ndarray, np.ndarray]:
         # Cleared to transparent black, so after the multisample resolve the colour is
-        # premultiplied by coverage: out = colour + background * (1 - alpha). Only the
-        # face's bounding box needs blending.
-        alpha = rgba[:, :, 3]
-        mask = alpha > 127
+        # premultiplied by coverage: out = colour + background * (1 - alpha). ``rgba`` is the
+        # window read back (``self._window``); only the face's bounding box needs blending.
+        x0, y0, x1, y1 = self._window
+        mask = np.zeros((self.height, self.width), bool)
+        mask[y0:y1, x0:x1] = rgba[:, :, 3] > 127
         out = np.zeros((self.height, self.width, 3), np.uint8) if background is None else background
+        alpha = rgba[:, :, 3]
         rows = np.flatnonzero(alpha.any(axis=1))
         if len(rows) == 0:
             return out, mask
         cols = np.flatnonzero(alpha[rows[0] : rows[-1] + 1].any(axis=0))
-        box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
-        color = rgba[box][:, :, :3]
+        inner = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]  # in the window
+        box = np.s_[y0 + rows[0] : y0 + rows[-1] + 1, x0 + cols[0] : x0 + cols[-1] + 1]
+        color = rgba[inner][:, :, :3]
+        alpha = alpha[inner]
         if background is None:
             out[box] = color
             return out, mask
         if feather_px > 0:
             # Weight by the distance to the face's edge; colour is premultiplied by alpha, so
             # both scale together.
-            inside = np.pad(mask[box].astype(np.uint8), 1)
+            inside = np.pad((alpha > 127).astype(np.uint8), 1)
             distance = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
             weight = np.minimum(distance / feather_px, 1.0)
-            a = alpha[box] * weight
+            a = alpha * weight
             blended = color * weight[:, :, None] + out[box] * (1.0 - a / 255.0)[:, :, None]
             out[box] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
             return out, mask
-        keep = (255 - alpha[box]).astype(np.uint16)[:, :, None]
+        keep = (255 - alpha).astype(np.uint16)[:, :, None]
         blended = color + ((out[box] * keep + 127) // 255).astype(np.uint8)
         out[box] = blended
         return out, mask

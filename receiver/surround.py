@@ -222,13 +222,18 @@ class SurroundWarp:
         (x0, x1), (y0, y1) = self._box
         box = np.s_[y0:y1, x0:x1]
         alpha = moved4[box][:, :, 3].astype(np.float32) * (1.0 / 255.0)
-        if camera is None:
+        if camera is None or np.array_equal(camera, np.eye(3)):
             scene = self._scene[box]
         else:
             to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera
-            scene = cv2.warpPerspective(
-                self._scene, to_box, (x1 - x0, y1 - y0), borderMode=cv2.BORDER_REFLECT_101
-            )
+            size, border = (x1 - x0, y1 - y0), cv2.BORDER_REFLECT_101
+            # Nearly affine (the sender measures a similarity; its quantised corners add a
+            # trace of perspective, under 0.1 px here): the cheaper warp.
+            tilt = abs(camera[2, 0]) * self.width + abs(camera[2, 1]) * self.height
+            if tilt < 1e-4 and abs(camera[2, 2] - 1.0) < 1e-9:
+                scene = cv2.warpAffine(self._scene, to_box[:2], size, borderMode=border)
+            else:
+                scene = cv2.warpPerspective(self._scene, to_box, size, borderMode=border)
         moved[box] = cv2.blendLinear(moved[box], scene, alpha, 1.0 - alpha)
         return moved
 
