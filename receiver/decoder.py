@@ -187,9 +187,16 @@ class FaceDecoder:
     def reconstruct(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR rendering of one frame's values: the face over the snapshot
         frame, whose surroundings of the head are moved along with the face."""
-        vertices = self.image_vertices(values)
+        pose, params = self.parameters(values)
+        return self.draw(pose, params, self.camera(values))
+
+    def draw(self, pose: Pose, params: np.ndarray, camera: np.ndarray) -> np.ndarray:
+        """:meth:`reconstruct` from parameters rather than a frame's values (the playout
+        draws pictures between two frames this way): ``params`` (P,) wire parameters,
+        ``camera`` the (3, 3) homography of :meth:`camera`."""
+        vertices = pose.apply(self.wires.deform(params))
         outline = vertices[self._outline, :2]
-        background = self.surround.warp(outline, self.camera(values))
+        background = self.surround.warp(outline, camera)
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))
