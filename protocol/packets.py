@@ -233,8 +233,9 @@ class Snapshot(_Packet):
 
     session_id : uint32, new each time a sender starts
     seq : the first frame number the snapshot is valid for
-    vertices : (n, 3) float, cm, model space (stored and sent as float32); vertex i is
-        landmark i of the canonical mesh
+    vertices : (n, 3) float, cm, model space; vertex i is landmark i of the canonical mesh.
+        Sent as float16 when given as float16 (a face's coordinates to 0.04 mm, half the
+        bytes), otherwise as float32.
     texture, background : JPEG, PNG or WebP bytes (may be empty); the header must be valid
         and state at most MAX_IMAGE_SIDE pixels on a side
     channels : ``(name, size, step)`` of every frame channel, in coding order
@@ -277,7 +278,7 @@ class Snapshot(_Packet):
             raise PacketError(f"Snapshot.vertices: expected a float array, got {v.dtype}")
         if not 1 <= len(v) <= MAX_VERTICES:
             raise PacketError(f"Snapshot.vertices: {len(v)} vertices outside [1, {MAX_VERTICES}]")
-        verts = v.astype(np.float32)  # always a copy
+        verts = v.astype(np.float16 if v.dtype == np.float16 else np.float32)  # a copy
         if not np.all(np.isfinite(verts)):
             raise PacketError("Snapshot.vertices: non-finite coordinates")
         verts.flags.writeable = False
@@ -317,7 +318,7 @@ class Snapshot(_Packet):
             self.height,
             self.fps,
             len(self.vertices),
-            self.vertices.astype("<f4").tobytes(),
+            self.vertices.astype("<f2" if self.vertices.dtype == np.float16 else "<f4").tobytes(),
             self.texture,
             self.background,
             [list(entry) for entry in self.channels],
@@ -331,11 +332,12 @@ class Snapshot(_Packet):
     def _from_fields(cls, f: list[Any]) -> Self:
         n = _int("Snapshot.n_vertices", f[5], 1, MAX_VERTICES)
         raw = _bytes("Snapshot.vertices", f[6])
-        if len(raw) != 12 * n:
+        if len(raw) not in (6 * n, 12 * n):
             raise PacketError(
-                f"Snapshot.vertices: {len(raw)} bytes for {n} vertices (expected {12 * n})"
+                f"Snapshot.vertices: {len(raw)} bytes for {n} vertices "
+                f"(expected {6 * n} as float16 or {12 * n} as float32)"
             )
-        vertices = np.frombuffer(raw, dtype="<f4").reshape(n, 3)
+        vertices = np.frombuffer(raw, dtype="<f2" if len(raw) == 6 * n else "<f4").reshape(n, 3)
         return cls(
             f[0], f[1], f[2], f[3], f[4], vertices, f[7], f[8], f[9], f[10], f[11], f[13], f[12]
         )
@@ -470,8 +472,9 @@ def _frame_body(name: str, value: object) -> bytes:
 class RemPatch(_Packet):
     """A region-effective-for-merging patch (e.g. the eyes) in texture (UV) space.
 
-    region : REM region name from the rig
-    codec : "jpeg" or "png"; data : the encoded image (header valid, within MAX_IMAGE_SIDE)
+    region : REM region name (models.rem.REGION_NAMES)
+    codec : "jpeg", "png" or "webp"; data : the encoded image (header valid, within
+    MAX_IMAGE_SIDE)
     h_peak : hue histogram peak, degrees [0, 360]; s_mean, v_mean : mean saturation and value
     in [0, 1] (HSV colour adaptation, seed 003 Eq. 2)
     """

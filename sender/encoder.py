@@ -31,21 +31,24 @@ from models.face_channels import (
     channel_steps,
     load_wire_basis,
     pose_channels,
+    pose_from_channels,
     rig_hash,
 )
 from models.mesh import FaceMesh, load_canonical
 from models.person import person_mask
 from models.pose import Pose, estimate_pose
+from models.rem import RemLayout
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelEncoder, ChannelSpec
 from protocol.constants import UINT32_MAX
-from protocol.packets import DeltaFrame, KeyFrame, Snapshot
-from protocol.quant import quantise
+from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
+from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.channel_filter import ChannelSmoother
 from sender.landmarks import LandmarkTracker
+from sender.rem import RemEncoder
 from sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
@@ -53,12 +56,21 @@ logger = logging.getLogger(__name__)
 #: A keyframe every this many seconds (and whenever a receiver asks for one).
 KEYFRAME_INTERVAL_S = 4.0
 #: Texture side per pixel of the face's width in the snapshot frame (rounded up to a power of
-#: two, within MIN/MAX_TEXTURE_SIZE): more texels than the camera saw add bytes, not detail.
-TEXELS_PER_FACE_PIXEL = 1.25
+#: two, within MIN/MAX_TEXTURE_SIZE). Two texels a pixel keep the round trip frame -> texture
+#: -> frame sharp (carphone's face SSIM +0.004 over 1.25); below 1.25 the texture would hold
+#: less than the camera saw. Between the two, the snapshot's byte budget decides.
+TEXELS_PER_FACE_PIXEL = 2.0
+LEAST_TEXELS_PER_FACE_PIXEL = 1.25
 MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE = 64, 512
+#: Bytes the snapshot's two images may take: a base plus so much per pixel of the frame
+#: (with the 2.8 KB of vertices, 12 KB for a 176x144 call and 40 KB for 640x480).
+IMAGE_BUDGET_BASE, IMAGE_BUDGET_PER_PIXEL = 6_380, 0.0993
 #: WebP quality of the snapshot's texture and background (chosen by measurement, see
 #: BENCHMARKS.md "Snapshot size").
 TEXTURE_QUALITY = 97
+#: REM patches are cut at most this many texels per pixel of the face's width (a power of two
+#: no larger than the texture): a sharper grid costs each patch bytes the camera never saw.
+REM_TEXELS_PER_FACE_PIXEL = 1.25
 BACKGROUND_QUALITY = 80
 
 
@@ -83,9 +95,9 @@ def _webp(image: np.ndarray, quality: int) -> bytes:
     return buf.tobytes()
 
 
-def texture_size(face_width_px: float) -> int:
+def texture_size(face_width_px: float, texels_per_pixel: float = TEXELS_PER_FACE_PIXEL) -> int:
     """Side of the session's texture for a face this wide in the snapshot frame."""
-    wanted = max(float(face_width_px) * TEXELS_PER_FACE_PIXEL, 1.0)
+    wanted = max(float(face_width_px) * texels_per_pixel, 1.0)
     side = 1 << int(np.ceil(np.log2(wanted)))
     return int(np.clip(side, MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE))
 
@@ -112,6 +124,7 @@ class FaceEncoder:
         error_px: float = DEFAULT_ERROR_PX,
         basis: WireBasis | None = None,
         smoothing: bool = True,
+        rem: bool = True,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker = tracker or LandmarkTracker()
@@ -141,6 +154,10 @@ class FaceEncoder:
         #: The float channel values the last tracked frame was quantised from (after
         #: smoothing): what the receiver rebuilds, within the quantisation budget.
         self.intended: dict[str, np.ndarray] | None = None
+        self.use_rem = rem
+        #: Live patches of the eyes and the mouth's inside (None: not sent).
+        self.rem: RemEncoder | None = None
+        self._patches: list[RemPatch] = []
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
@@ -154,10 +171,34 @@ class FaceEncoder:
         pose = estimate_pose(
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
-        mesh = self.canonical.with_vertices(pose.inverse(points))
-        side = texture_size(np.ptp(points[:, 0]))
-        texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, side).unwrap(frame.image, points)
+        # Rounded as the snapshot carries them (float16), so both ends deform the same mesh.
+        vertices = pose.inverse(points).astype(np.float16)
+        mesh = self.canonical.with_vertices(vertices.astype(np.float64))
         background = frame.image.copy()
+        background_webp = _webp(background, BACKGROUND_QUALITY)
+        budget = IMAGE_BUDGET_BASE + IMAGE_BUDGET_PER_PIXEL * self.width * self.height
+        side = texture_size(np.ptp(points[:, 0]))
+        least = texture_size(np.ptp(points[:, 0]), LEAST_TEXELS_PER_FACE_PIXEL)
+        while True:
+            texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, side).unwrap(frame.image, points)
+            texture_webp = _webp(texture, TEXTURE_QUALITY)
+            if side <= least or len(texture_webp) + len(background_webp) <= budget:
+                break
+            side //= 2
+        meta: dict[str, str | int | float] = {
+            "tracker": "mediapipe-landmarks",
+            "texture_size": side,
+        }
+        if self.use_rem:
+            face = np.ptp(points[:, 0])
+            patch_side = min(side, texture_size(face, REM_TEXELS_PER_FACE_PIXEL))
+            layout = RemLayout(mesh.triangles, mesh.uvs, self.rig, side, patch_side)
+            self.rem = RemEncoder(layout, texture, self.fps)
+            # The mouth's inside gets its own rectangle of texture, as this frame shows it.
+            self.rem.fill_atlas(texture, frame.image, points)
+            texture_webp = _webp(texture, TEXTURE_QUALITY)
+            meta["rem_patch_size"] = patch_side
+        self._patches = []
         self.session = SessionModel(mesh, texture, background)
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         self.wires.prepare_fit()
@@ -200,14 +241,14 @@ class FaceEncoder:
             width=self.width,
             height=self.height,
             fps=self.fps,
-            vertices=mesh.vertices.astype(np.float32),
-            texture=_webp(texture, TEXTURE_QUALITY),
-            background=_webp(background, BACKGROUND_QUALITY),
+            vertices=vertices,
+            texture=texture_webp,
+            background=background_webp,
             channels=[(s.name, s.size, s.step) for s in specs],
             rig_hash=rig_hash(),
             keyframe_interval=interval,
             reference=[tuple(int(v) for v in self._last_values[s.name]) for s in specs],
-            meta={"tracker": "mediapipe-landmarks", "texture_size": side},
+            meta=meta,
         )
 
     def analyse(self, image: np.ndarray) -> tuple[Pose, np.ndarray] | None:
@@ -243,9 +284,25 @@ class FaceEncoder:
         return {} if self._channels is None else dict(self._channels.coded_bits)
 
     def request_keyframe(self) -> None:
-        """The next packet is a keyframe (a receiver asked for one)."""
+        """The next packet is a keyframe (a receiver asked for one), with every REM patch
+        sent so far again."""
         if self._channels is not None:
             self._channels.request_keyframe()
+        if self.rem is not None:
+            self.rem.request_refresh()
+
+    def take_patches(self) -> list[RemPatch]:
+        """The REM patches of the last encoded frame (publish them before its frame packet)."""
+        patches, self._patches = self._patches, []
+        return patches
+
+    def rebuilt_vertices(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """(n, 3) the face as the receiver rebuilds quantised channel ``values``, image
+        space (pixels)."""
+        assert self.wires is not None, "start() first"
+        floats = {name: dequantise(v, self.steps[name]) for name, v in values.items()}
+        params = self.rest_params + self.basis.params(floats[WIRE])
+        return pose_from_channels(floats).apply(self.wires.deform(params))
 
     def encode(self, frame: CapturedFrame) -> KeyFrame | DeltaFrame | None:
         """The packet for ``frame`` (``seq`` = frame index), or None when nothing changed."""
@@ -271,7 +328,17 @@ class FaceEncoder:
             floats[POSE_TRANSLATION][2] = self._depth
             self.intended = floats
             self._last_values = self._quantise(floats, self._last_values)
-        packet, _ = self._channels.encode(frame.index, frame.capture_us, self._last_values)
+        patches: list[RemPatch] = []
+        if self.rem is not None and result is not None:
+            vertices = self.rebuilt_vertices(self._last_values)
+            patches = self.rem.changed(frame.index, frame.image, vertices)
+        # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
+        packet, _ = self._channels.encode(
+            frame.index, frame.capture_us, self._last_values, force=bool(patches)
+        )
+        if self.rem is not None and isinstance(packet, KeyFrame):
+            patches = self.rem.keyframe(frame.index, patches) + patches
+        self._patches = patches
         return packet
 
     def _quantise(

@@ -282,7 +282,9 @@ def snapshot_fields(**changes: object) -> bytes:
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"n": 2}, "Snapshot.vertices: 12 bytes for 2 vertices (expected 24)"),
+        ({"n": 3}, "Snapshot.vertices: 12 bytes for 3 vertices (expected 18 as float16 or 36"),
+        ({"n": 2}, None),  # 12 bytes for 2 vertices: float16
+        ({"n": 1, "vertices": bytes(4) + b"\x00\x7c"}, "Snapshot.vertices: non-finite"),
         ({"n": 0, "vertices": b""}, "Snapshot.n_vertices: 0 outside [1, 200000]"),
         ({"fps": 0.0}, "Snapshot.fps: 0.0 outside [0.01, 1000.0]"),
         ({"fps": 5e-324}, "Snapshot.fps: 5e-324 outside [0.01, 1000.0]"),

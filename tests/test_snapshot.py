@@ -15,8 +15,9 @@ ASTRONAUT = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 
 
 def test_texture_side_is_the_power_of_two_the_face_can_fill() -> None:
-    assert texture_size(60) == 128  # a QCIF call's face
-    assert texture_size(185) == 256  # the bundled clip's
+    assert texture_size(60) == 128  # a QCIF call's face: two texels a pixel
+    assert texture_size(185) == 512  # the bundled clip's, before the byte budget
+    assert texture_size(185, 1.25) == 256  # the least it gets
     assert texture_size(10) == MIN_TEXTURE_SIZE
     assert texture_size(4000) == MAX_TEXTURE_SIZE
 
@@ -34,3 +35,19 @@ def test_a_small_face_gets_a_small_texture_and_both_images_are_webp() -> None:
         # Quality: the background is the frame itself, seen at the call's size.
         assert cv2.PSNR(background, image) > 30.0
         assert np.isfinite(snapshot.vertices).all()
+
+
+def test_a_qcif_snapshot_keeps_its_budget_and_both_ends_share_the_mesh() -> None:
+    from protocol.packets import decode
+
+    face = cv2.imread(str(ASTRONAUT))
+    frame = cv2.resize(face, (176, 144), interpolation=cv2.INTER_AREA)
+    encoder = FaceEncoder(176, 144, 30.0)
+    snapshot = encoder.start(CapturedFrame(0, frame, 0))
+    assert snapshot is not None and encoder.session is not None
+    assert len(bytes(snapshot)) <= 12_000  # issue 8's budget for a 176x144 call
+    assert snapshot.vertices.dtype == np.float16  # half the bytes of float32
+    received = decode(bytes(snapshot))
+    assert isinstance(received, type(snapshot))
+    # The sender fits on the very mesh the receiver deforms.
+    assert np.array_equal(received.vertices.astype(np.float64), encoder.session.mesh.vertices)
