@@ -29,6 +29,7 @@ class Kind(IntEnum):
     BYE = 7
     SNAPSHOT_REQUEST = 8
     DELTA_FRAME = 9
+    AUDIO_FRAME = 10
 
 
 # --- limits (decoding rejects anything beyond them) -----------------------------------------
@@ -62,6 +63,8 @@ MAX_CHANNEL_VALUE: Final = 2**24
 MAX_SEQ_STEP: Final = 30
 #: Largest |capture time - prediction| a delta frame can carry, milliseconds.
 MAX_TIME_RESIDUAL_MS: Final = 60_000
+#: Largest Opus packet of one audio frame, in bytes (RFC 6716, section 3.4, R2).
+MAX_AUDIO_BYTES: Final = 1275
 
 # --- integer ranges ----------------------------------------------------------------------------
 
@@ -80,7 +83,21 @@ CHANNEL_SNAPSHOT: Final = "snapshot"
 CHANNEL_GEOMETRY: Final = "geometry"
 CHANNEL_REM: Final = "rem"
 CHANNEL_CONTROL: Final = "control"
-CHANNELS: Final = (CHANNEL_SNAPSHOT, CHANNEL_GEOMETRY, CHANNEL_REM, CHANNEL_CONTROL)
+CHANNEL_AUDIO: Final = "audio"
+CHANNELS: Final = (
+    CHANNEL_SNAPSHOT,
+    CHANNEL_GEOMETRY,
+    CHANNEL_REM,
+    CHANNEL_CONTROL,
+    CHANNEL_AUDIO,
+)
+
+# --- audio (docs/protocol.md, AudioFrame) -------------------------------------------------------
+
+#: Opus at 48 kHz, mono, one 20 ms frame per AudioFrame packet.
+AUDIO_RATE: Final = 48_000
+AUDIO_FRAME_MS: Final = 20
+AUDIO_FRAME_SAMPLES: Final = AUDIO_RATE * AUDIO_FRAME_MS // 1000
 
 # --- transport timings and queue sizes -----------------------------------------------------------
 

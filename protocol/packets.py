@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocol.constants import (
+    CHANNEL_AUDIO,
     CHANNEL_CONTROL,
     CHANNEL_GEOMETRY,
     CHANNEL_REM,
@@ -36,6 +37,7 @@ from protocol.constants import (
     INT64_MAX,
     INT64_MIN,
     MAX_ARRAY_LEN,
+    MAX_AUDIO_BYTES,
     MAX_CHANNEL_VALUE,
     MAX_CHANNELS,
     MAX_FPS,
@@ -468,6 +470,52 @@ def _frame_body(name: str, value: object) -> bytes:
     return data
 
 
+_AUDIO_HEAD = struct.Struct("<Iq")  # seq, capture_us
+
+
+@dataclass(frozen=True, eq=False)
+class AudioFrame(_Packet):
+    """20 ms of sound: one Opus packet (48 kHz, mono; docs/protocol.md, AudioFrame).
+
+    seq : uint32, the frame's place in the sender's sound, in 20 ms steps from 0; a step
+        of more than one is a lost packet or silence the encoder left out (DTX), and the
+        receiver conceals both the same way
+    capture_us : int64, when the frame's first sample was captured, on the clock of the
+        video frames' capture_us (lip sync)
+    data : the Opus packet, 1 to MAX_AUDIO_BYTES bytes
+    """
+
+    KIND: ClassVar[Kind] = Kind.AUDIO_FRAME
+    CHANNEL: ClassVar[str] = CHANNEL_AUDIO
+
+    seq: int
+    capture_us: int
+    data: bytes = field(repr=False)
+
+    def __post_init__(self) -> None:
+        _set(self, "seq", _int("AudioFrame.seq", self.seq, 0, UINT32_MAX))
+        _set(
+            self, "capture_us", _int("AudioFrame.capture_us", self.capture_us, INT64_MIN, INT64_MAX)
+        )
+        data = _bytes("AudioFrame.data", self.data)
+        if not 1 <= len(data) <= MAX_AUDIO_BYTES:
+            raise PacketError(f"AudioFrame.data: {len(data)} bytes outside [1, {MAX_AUDIO_BYTES}]")
+        _set(self, "data", data)
+
+    def _body(self) -> bytes:
+        return _AUDIO_HEAD.pack(self.seq, self.capture_us) + self.data
+
+    @classmethod
+    def _from_body(cls, body: bytes) -> Self:
+        if len(body) < _AUDIO_HEAD.size + 1:
+            raise PacketError(
+                f"truncated AudioFrame: {len(body) + 1} bytes, needs at least "
+                f"{_AUDIO_HEAD.size + 2}"
+            )
+        seq, capture_us = _AUDIO_HEAD.unpack_from(body)
+        return cls(seq, capture_us, body[_AUDIO_HEAD.size :])
+
+
 @dataclass(frozen=True, eq=False)
 class RemPatch(_Packet):
     """A region-effective-for-merging patch (e.g. the eyes) in texture (UV) space.
@@ -585,6 +633,7 @@ Packet: TypeAlias = (
     | ReceiverStats
     | Bye
     | SnapshotRequest
+    | AudioFrame
 )
 
 _BY_KIND: dict[int, type[_Packet]] = {
@@ -599,6 +648,7 @@ _BY_KIND: dict[int, type[_Packet]] = {
         ReceiverStats,
         Bye,
         SnapshotRequest,
+        AudioFrame,
     )
 }
 

@@ -1,7 +1,7 @@
 """ZeroMQ transport: the ZeroMQ Guide's "Clone" pattern with a back channel, over CURVE.
 
-The sender has a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, and a new
-Snapshot) and a ROUTER socket (snapshot requests and the back channel: KeyframeRequest,
+The sender has a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, AudioFrame, Heartbeat, Bye,
+and a new Snapshot) and a ROUTER socket (snapshot requests and the back channel: KeyframeRequest,
 ReceiverStats, probes); a receiver has a SUB and a DEALER socket. By default the sender binds and
 the receiver connects; either side may take the other role (``SenderEndpoint(connect=True)``
 with ``ReceiverEndpoint(bind=True)``), which changes nothing above the sockets: the sender stays
@@ -43,7 +43,7 @@ import math
 import os
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from types import TracebackType
@@ -71,6 +71,7 @@ from protocol.constants import (
 )
 from protocol.keys import KeyPair, load_keypair, load_public_key, load_public_keys
 from protocol.packets import (
+    AudioFrame,
     Bye,
     DeltaFrame,
     Heartbeat,
@@ -93,7 +94,7 @@ KeyFile = str | os.PathLike[str]
 #: has no seq: it is passed on, and the decoder ignores deltas until its chain starts.)
 SEQ_KINDS = (KeyFrame, RemPatch)
 #: Packets that travel on the PUB/SUB update channel.
-UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot)
+UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot, AudioFrame)
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
 _MAX_DRAIN = 1000
 _HANDSHAKE_FAILED = (
@@ -248,6 +249,10 @@ class _Endpoint:
         #: Payload bytes per channel ("snapshot", "geometry", "rem", "control").
         self.bytes_sent: dict[str, int] = dict.fromkeys(CHANNELS, 0)
         self.bytes_received: dict[str, int] = dict.fromkeys(CHANNELS, 0)
+        #: The same messages by size, per channel: {bytes: messages} (the wire overhead of
+        #: ZeroMQ framing and TCP/IP headers is paid per message).
+        self.sizes_sent: dict[str, Counter[int]] = {ch: Counter() for ch in CHANNELS}
+        self.sizes_received: dict[str, Counter[int]] = {ch: Counter() for ch in CHANNELS}
 
     def now_us(self) -> int:
         """The endpoint's clock in integer microseconds (``sent_us`` of heartbeats)."""
@@ -400,7 +405,7 @@ class SenderEndpoint(_Endpoint):
 
     def publish(
         self,
-        packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot,
+        packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot | AudioFrame,
         seq: int | None = None,
     ) -> None:
         """Publish an update to every subscribed receiver (never blocks; drops past the HWM).
@@ -420,6 +425,7 @@ class SenderEndpoint(_Endpoint):
         self._pub.getsockopt(zmq.EVENTS)
         self._pub.send(data)
         self.bytes_sent[packet.CHANNEL] += len(data)
+        self.sizes_sent[packet.CHANNEL][len(data)] += 1
         self._last_publish = self._clock()
         if isinstance(packet, KeyFrame):
             self._last_seq = packet.seq
@@ -503,6 +509,7 @@ class SenderEndpoint(_Endpoint):
     def _accept(self, packet: Packet, data: bytes) -> None:
         self.stats.received += 1
         self.bytes_received[packet.CHANNEL] += len(data)
+        self.sizes_received[packet.CHANNEL][len(data)] += 1
 
     def _answer_probe(self) -> None:
         # One published Heartbeat answers every receiver probing within PROBE_INTERVAL_MS, so
@@ -553,6 +560,7 @@ class SenderEndpoint(_Endpoint):
             return
         self._served_at[identity] = now
         self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
+        self.sizes_sent[CHANNEL_SNAPSHOT][len(self._snapshot_bytes)] += 1
         self.snapshots_served += 1
         logger.info("served the snapshot (%d bytes)", len(self._snapshot_bytes))
 
@@ -705,7 +713,8 @@ class ReceiverEndpoint(_Endpoint):
     def recv(self, timeout_ms: int = 0) -> Packet | None:
         """The next update at or after the snapshot's seq, or None after ``timeout_ms``.
 
-        Returns KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye or a new Snapshot. Malformed
+        Returns KeyFrame, DeltaFrame, RemPatch, AudioFrame, Heartbeat, Bye or a new Snapshot.
+        Malformed
         messages are counted in ``stats.malformed`` and dropped; bad input never raises.
         Raises :class:`RejoinNeeded` (until :meth:`fetch_snapshot` is called again) once the
         SUB connection has dropped and come back, or an update names another session.
@@ -752,6 +761,7 @@ class ReceiverEndpoint(_Endpoint):
             logger.debug("back channel full, dropped %s", type(packet).__name__)
             return
         self.bytes_sent[CHANNEL_CONTROL] += len(data)
+        self.sizes_sent[CHANNEL_CONTROL][len(data)] += 1
 
     def _forget(self) -> None:
         """Drop the old stream before a rejoin: its queued updates must not pass as new ones."""
@@ -792,6 +802,7 @@ class ReceiverEndpoint(_Endpoint):
         self.snapshot = snapshot
         self.stats.received += 1
         self.bytes_received[snapshot.CHANNEL] += len(data)
+        self.sizes_received[snapshot.CHANNEL][len(data)] += 1
         self._last_heard = self._clock()
 
     def _update(self, frames: list[bytes]) -> Packet | None:
@@ -827,6 +838,7 @@ class ReceiverEndpoint(_Endpoint):
             self._last_seq = packet.seq
         self.stats.received += 1
         self.bytes_received[packet.CHANNEL] += len(data)
+        self.sizes_received[packet.CHANNEL][len(data)] += 1
         return packet
 
 

@@ -1,0 +1,460 @@
+"""The receiver's sound: Opus decoding, jitter buffer, concealment, playback and lip sync.
+
+AudioFrame packets (docs/protocol.md) go into a jitter buffer keyed by their 20 ms step
+(``seq``). A thread plays one step every 20 ms: the packet if it came, else Opus's own
+packet-loss concealment for up to CONCEAL_FRAMES steps (a lost packet, or the start of the
+silence the sender left out, DTX), then silence. Steps are played on the capture clock:
+step s is due at ``capture_us(s) + latency``, where ``latency`` is the face's (how long after
+capture the receive loop put its pictures on screen, :attr:`RenderedFrame.latency_ms`), or
+more when the sound needs it to arrive in time (its packets wait for the video frame that
+follows them, and then cross the network). So voice and lips leave the receiver together;
+the latency is chosen again whenever the sound has paused, never in the middle of a word.
+
+Where there is no sound device (or sounddevice is not installed) the sound goes to a null
+sink, paced the same way; either way what was played is kept for the recording and muxed
+into the MP4 at the end (:func:`mux_audio`, PyAV: the video copied, the sound as AAC).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import threading
+import time
+import wave
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from protocol.clock import now_us
+from protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUDIO_RATE
+from protocol.packets import AudioFrame, KeyFrame
+
+logger = logging.getLogger(__name__)
+
+FRAME_US = AUDIO_FRAME_MS * 1000
+#: Missing steps concealed by the codec in a row; beyond them the gap is silence.
+CONCEAL_FRAMES = 5
+#: A pause this long (steps without a packet, nothing buffered) lets the latency be chosen again.
+RESYNC_FRAMES = 10
+#: Steps kept ahead of the one playing (5 s); packets beyond are dropped.
+MAX_AHEAD_FRAMES = 250
+#: A packet this far behind the one playing is a new sender (its steps start again from 0).
+RESTART_FRAMES = 250
+#: Margin the sound's own latency keeps over the slowest recent packet, µs.
+MARGIN_US = 10_000
+#: Recent packets (capture to arrival) and pictures (capture to screen) that set the latency.
+WINDOW = 100
+#: Audio latency samples kept for the figures (about 3 minutes of sound).
+MAX_SAMPLES = 10_000
+
+
+class AudioDecodeError(ValueError):
+    """An Opus packet the decoder refused."""
+
+
+class OpusDecoder:
+    """PyAV's libopus decoder: 20 ms packets in, 960 int16 samples out; codec concealment."""
+
+    def __init__(self) -> None:
+        import av
+
+        self._av = av
+        ctx: Any = av.CodecContext.create("libopus", "r")
+        ctx.sample_rate = AUDIO_RATE
+        ctx.layout = "mono"
+        ctx.open()
+        self._ctx = ctx
+        self._toc: int | None = None
+
+    def decode(self, data: bytes) -> np.ndarray:
+        """The 20 ms an Opus packet holds; AudioDecodeError when it is not one."""
+        try:
+            frames = self._ctx.decode(self._av.Packet(data))
+        except self._av.FFmpegError as exc:
+            raise AudioDecodeError(f"Opus packet of {len(data)} bytes refused: {exc}") from None
+        pcm = _pcm(frames)
+        if len(pcm) != AUDIO_FRAME_SAMPLES:
+            raise AudioDecodeError(
+                f"Opus packet of {len(data)} bytes holds {len(pcm)} samples, "
+                f"expected {AUDIO_FRAME_SAMPLES} (20 ms)"
+            )
+        self._toc = data[0]
+        return pcm
+
+    def conceal(self) -> np.ndarray:
+        """20 ms of the codec's concealment: a packet whose only frame is empty tells libopus
+        the frame was lost (RFC 6716, 3.2.1), which it then extrapolates."""
+        if self._toc is None:
+            return np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
+        try:
+            pcm = _pcm(self._ctx.decode(self._av.Packet(bytes([self._toc & 0xFC]))))
+        except self._av.FFmpegError:
+            pcm = np.zeros(0, np.int16)
+        if len(pcm) != AUDIO_FRAME_SAMPLES:
+            return np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
+        return pcm
+
+
+def _pcm(frames: Sequence[Any]) -> np.ndarray:
+    chunks = [f.to_ndarray().reshape(-1) for f in frames]
+    if not chunks:
+        return np.zeros(0, np.int16)
+    pcm = np.concatenate(chunks)
+    if pcm.dtype != np.int16:  # float planar from some builds
+        pcm = np.clip(np.round(pcm * 32767), -32768, 32767).astype(np.int16)
+    return pcm
+
+
+class AudioSink(Protocol):
+    """Where played sound goes. ``latency_us``: from write to the speaker."""
+
+    name: str
+    latency_us: int
+
+    def write(self, pcm: np.ndarray) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class NullSink:
+    """No sound device: the sound is only timed, recorded and measured."""
+
+    name = "no sound device"
+    latency_us = 0
+
+    def write(self, pcm: np.ndarray) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class DeviceSink:
+    """The default output device through sounddevice (PortAudio)."""
+
+    def __init__(self) -> None:
+        import sounddevice as sd
+
+        self._stream = sd.OutputStream(
+            samplerate=AUDIO_RATE, channels=1, dtype="int16", blocksize=AUDIO_FRAME_SAMPLES
+        )
+        self._stream.start()
+        self.name = str(sd.query_devices(kind="output")["name"])
+        self.latency_us = round(float(self._stream.latency) * 1e6)
+
+    def write(self, pcm: np.ndarray) -> None:
+        self._stream.write(pcm.reshape(-1, 1))
+
+    def close(self) -> None:
+        self._stream.close()
+
+
+def open_sink(device: bool = True) -> tuple[AudioSink, str | None]:
+    """The sound device, or a null sink and one line saying why there is none."""
+    if not device:
+        return NullSink(), None
+    try:
+        return DeviceSink(), None
+    except ImportError:
+        reason = "no sound device (sounddevice is not installed): the sound is only recorded"
+    except Exception as exc:  # PortAudio: no device, busy, no library
+        reason = f"no sound device ({str(exc).splitlines()[0]}): the sound is only recorded"
+    return NullSink(), reason
+
+
+@dataclass
+class AudioReport:
+    """What the receiver's sound did over the call."""
+
+    packets: int = 0
+    bytes: int = 0
+    played: int = 0  # 20 ms steps played from a packet
+    concealed: int = 0  # steps the codec made up (loss, or the start of DTX silence)
+    silent: int = 0  # steps of silence after CONCEAL_FRAMES
+    late: int = 0  # packets that came after their step was played
+    dropped: int = 0  # too far ahead, duplicates
+    malformed: int = 0  # packets the Opus decoder refused (concealed instead)
+    restarts: int = 0
+    sink: str = ""
+    # (audio latency, face latency) µs per played step: capture to sink, capture to screen.
+    latency_us: list[tuple[int, int]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        lat = np.asarray(self.latency_us, dtype=np.float64).reshape(-1, 2)
+        offset = (lat[:, 0] - lat[:, 1]) / 1000 if len(lat) else np.zeros(0)
+
+        def pct(q: float) -> float:
+            return float(np.percentile(offset, q)) if len(offset) else 0.0
+
+        return {
+            "packets": self.packets,
+            "bytes": self.bytes,
+            "played": self.played,
+            "concealed": self.concealed,
+            "silent": self.silent,
+            "late": self.late,
+            "dropped": self.dropped,
+            "malformed": self.malformed,
+            "restarts": self.restarts,
+            "sink": self.sink,
+            "latency_ms_p50": float(np.median(lat[:, 0])) / 1000 if len(lat) else 0.0,
+            # Sound minus face, ms: > 0 the sound comes after the lips (BT.1359: at most
+            # 125 ms), < 0 before them (at most 45 ms).
+            "av_offset_ms": {"p5": pct(5), "p50": pct(50), "p95": pct(95)},
+        }
+
+
+class _Timeline:
+    """What was played, as 48 kHz mono int16 on the capture clock, kept in a WAV file."""
+
+    def __init__(self) -> None:
+        fd, name = tempfile.mkstemp(prefix="facewire-audio-", suffix=".wav")
+        os.close(fd)
+        self.path = Path(name)
+        self._wav = wave.open(name, "wb")
+        self._wav.setnchannels(1)
+        self._wav.setsampwidth(2)
+        self._wav.setframerate(AUDIO_RATE)
+        self.start_us: int | None = None  # capture time of the first sample
+        self.samples = 0
+
+    def put(self, capture_us: int, pcm: np.ndarray) -> None:
+        if self.start_us is None:
+            self.start_us = capture_us
+        at = round((capture_us - self.start_us) * AUDIO_RATE / 1e6)
+        if at > self.samples:  # a pause: silence up to it
+            self._wav.writeframes(np.zeros(at - self.samples, "<i2").tobytes())
+            self.samples = at
+        skip = self.samples - at  # overlap after a re-sync: keep what was written
+        if skip < len(pcm):
+            self._wav.writeframes(pcm[skip:].astype("<i2").tobytes())
+            self.samples += len(pcm) - skip
+
+    def close(self) -> None:
+        self._wav.close()
+
+    def read(self) -> np.ndarray:
+        with wave.open(str(self.path)) as w:
+            return np.frombuffer(w.readframes(w.getnframes()), "<i2")
+
+
+class AudioPlayout:
+    """The jitter buffer and the thread that plays it (see the module's docstring).
+
+    ``face_latency`` gives the recent capture-to-screen times of the face, µs (the receive
+    loop's shown pictures); the sound follows them. :meth:`push` takes AudioFrame packets
+    (and KeyFrames, whose capture time places the sound in the recording).
+    """
+
+    def __init__(
+        self,
+        sink: AudioSink,
+        face_latency: Callable[[], int | None],
+        clock: Callable[[], int] = now_us,
+    ) -> None:
+        self.sink = sink
+        self.report = AudioReport(sink=sink.name)
+        self._face_latency = face_latency
+        self._clock = clock
+        self._decoder = OpusDecoder()
+        self._timeline = _Timeline()
+        self._lock = threading.Condition()
+        self._buffer: dict[int, AudioFrame] = {}
+        self._transit: list[int] = []  # capture to arrival, µs, recent packets
+        self._next: int | None = None  # the step to play next (None: idle)
+        self._base: tuple[int, int, int] = (0, 0, 0)  # (step, its capture µs, its local due µs)
+        self._missing = 0  # steps in a row without a packet
+        self._stop = False
+        #: (frame seq, capture µs) of the first keyframe: where the recording's video starts.
+        self.video_anchor: tuple[int, int] | None = None
+        self._thread = threading.Thread(target=self._run, name="audio-playout", daemon=True)
+        self._thread.start()
+
+    # --- receive side (the receive loop's thread) ------------------------------------------
+
+    def push(self, packet: AudioFrame | KeyFrame, arrival_us: int | None = None) -> None:
+        if isinstance(packet, KeyFrame):
+            if self.video_anchor is None:
+                self.video_anchor = (packet.seq, packet.capture_us)
+            return
+        arrival = self._clock() if arrival_us is None else arrival_us
+        with self._lock:
+            report = self.report
+            report.packets += 1
+            report.bytes += len(packet.data)
+            nxt = self._next
+            if nxt is not None and packet.seq < nxt - RESTART_FRAMES:
+                logger.info("sound starts again at step %d (was at %d)", packet.seq, nxt)
+                report.restarts += 1
+                self._buffer.clear()
+                self._next = None
+                nxt = None
+            if nxt is not None and packet.seq < nxt:
+                report.late += 1
+                return
+            if packet.seq in self._buffer or (
+                nxt is not None and packet.seq > nxt + MAX_AHEAD_FRAMES
+            ):
+                report.dropped += 1
+                return
+            self._buffer[packet.seq] = packet
+            self._transit.append(arrival - packet.capture_us)
+            del self._transit[:-WINDOW]
+            self._lock.notify()
+
+    # --- play side (its own thread) --------------------------------------------------------
+
+    def _latency(self) -> int:
+        """How long after capture the next run of sound is played, µs."""
+        own = max(self._transit) + FRAME_US + MARGIN_US if self._transit else 0
+        face = self._face_latency()
+        return max(own, face if face is not None else own)
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                while not self._stop and self._next is None and not self._buffer:
+                    self._lock.wait(0.1)
+                if self._stop:
+                    return
+                if self._next is None:  # start a run: choose the latency now
+                    first = min(self._buffer)
+                    capture = self._buffer[first].capture_us
+                    self._next = first
+                    self._base = (first, capture, capture + self._latency())
+                step = self._next
+                base_step, base_capture, base_due = self._base
+                due = base_due + (step - base_step) * FRAME_US
+            wait = due - self.sink.latency_us - self._clock()
+            if wait > 0:
+                time.sleep(wait / 1e6)
+            self._play(step, base_capture + (step - base_step) * FRAME_US)
+
+    def _play(self, step: int, capture_us: int) -> None:
+        with self._lock:
+            packet = self._buffer.pop(step, None)
+            self._next = step + 1
+        report = self.report
+        pcm: np.ndarray | None = None
+        if packet is not None:
+            try:
+                pcm = self._decoder.decode(packet.data)
+                report.played += 1
+                self._missing = 0
+                capture_us = packet.capture_us
+            except AudioDecodeError as exc:
+                logger.debug("%s", exc)
+                report.malformed += 1
+        if pcm is None:
+            self._missing += 1
+            if self._missing <= CONCEAL_FRAMES:
+                pcm = self._decoder.conceal()
+                report.concealed += 1
+            else:
+                pcm = np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
+                report.silent += 1
+        self.sink.write(pcm)
+        played = self._clock() + self.sink.latency_us
+        face = self._face_latency()
+        if packet is not None and face is not None and len(report.latency_us) < MAX_SAMPLES:
+            report.latency_us.append((played - capture_us, face))
+        self._timeline.put(capture_us, pcm)
+        with self._lock:
+            if self._missing >= RESYNC_FRAMES and not self._buffer:
+                self._next = None  # a pause: the next run chooses its latency again
+
+    # --- the end ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Stop playing (what is still buffered is dropped) and close the sink."""
+        with self._lock:
+            self._stop = True
+            self._lock.notify()
+        self._thread.join()
+        self.sink.close()
+        self._timeline.close()
+
+    def recorded(self, first_seq: int, fps: float) -> np.ndarray:
+        """What was played, placed against a recording whose frame 0 is the sender's frame
+        ``first_seq``: sample 0 of the result is that frame's instant."""
+        pcm = self._timeline.read()
+        start = self._timeline.start_us
+        if start is None or self.video_anchor is None:
+            return pcm[:0]
+        seq, capture = self.video_anchor
+        frame0_us = capture - (seq - first_seq) * 1e6 / fps
+        shift = round((start - frame0_us) * AUDIO_RATE / 1e6)
+        if shift >= 0:
+            return np.concatenate([np.zeros(shift, np.int16), pcm])
+        return pcm[-shift:]
+
+    def discard(self) -> None:
+        self._timeline.path.unlink(missing_ok=True)
+
+
+def face_latency_from(shown: list[tuple[int, int]]) -> Callable[[], int | None]:
+    """The face's recent capture-to-screen time (median of the last pictures), from the
+    receive loop's ``(ready µs, depicted instant µs)`` list, which it keeps appending to."""
+
+    def latency() -> int | None:
+        recent = shown[-30:]
+        if not recent:
+            return None
+        return int(np.median([ready - media for ready, media in recent]))
+
+    return latency
+
+
+def mux_audio(video_path: str | Path, pcm: np.ndarray, bitrate: int = 64_000) -> None:
+    """Put ``pcm`` (48 kHz mono int16, sample 0 at the first frame) into the MP4 at
+    ``video_path`` beside its video: the video packets are copied, the sound coded as AAC
+    and cut or padded to the video's length. The file is replaced when all went well."""
+    import av
+
+    video_path = Path(video_path)
+    tmp = video_path.with_name(f".{video_path.stem}.mux{video_path.suffix}")
+    with av.open(str(video_path)) as src:
+        vin = src.streams.video[0]
+        duration_s = float(vin.frames / vin.average_rate) if vin.frames and vin.average_rate else 0
+        with av.open(str(tmp), "w", format="mp4") as dst:
+            vout = dst.add_stream_from_template(vin)
+            aout: Any = dst.add_stream("aac", rate=AUDIO_RATE, layout="mono")
+            aout.bit_rate = bitrate
+            for packet in src.demux(vin):
+                if packet.dts is None:
+                    continue
+                packet.stream = vout
+                dst.mux(packet)
+            want = round(duration_s * AUDIO_RATE) if duration_s else len(pcm)
+            pcm = np.pad(pcm[:want], (0, max(0, want - len(pcm))))
+            frame_size = aout.codec_context.frame_size or 1024
+            for at in range(0, len(pcm), frame_size):
+                chunk = pcm[at : at + frame_size]
+                frame = av.AudioFrame.from_ndarray(
+                    chunk.reshape(1, -1).astype(np.int16), format="s16", layout="mono"
+                )
+                frame.sample_rate = AUDIO_RATE
+                frame.pts = at
+                dst.mux(aout.encode(frame))
+            dst.mux(aout.encode(None))
+    os.replace(tmp, video_path)
+
+
+def read_audio(path: str | Path, rate: int = AUDIO_RATE) -> np.ndarray:
+    """A file's first audio track as mono int16 at ``rate`` (tests, benchmarks)."""
+    import av
+
+    with av.open(str(path)) as src:
+        if not src.streams.audio:
+            return np.zeros(0, np.int16)
+        resampler = av.AudioResampler(format="s16", layout="mono", rate=rate)
+        chunks = []
+        for frame in src.decode(src.streams.audio[0]):
+            chunks += [f.to_ndarray().reshape(-1) for f in resampler.resample(frame)]
+        chunks += [f.to_ndarray().reshape(-1) for f in resampler.resample(None)]
+    return np.concatenate(chunks) if chunks else np.zeros(0, np.int16)
