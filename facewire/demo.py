@@ -14,7 +14,8 @@ import logging
 import multiprocessing as mp
 import queue
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections import Counter
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -143,6 +144,11 @@ def _call(
             ch: endpoint.bytes_sent.get(ch, 0) + endpoint.bytes_received.get(ch, 0)
             for ch in CHANNELS
         }
+        # Message sizes, for the wire overhead (facewire.wire): sender -> receiver and back.
+        messages = {
+            "to_receiver": _by_size(endpoint.sizes_sent),
+            "to_sender": _by_size(endpoint.sizes_received),
+        }
     duration = sender.frames_in / video.fps
     kbps = {ch: traffic[ch] * 8 / duration / 1000 for ch in CHANNELS}
     kbps["total"] = sum(kbps.values())
@@ -161,10 +167,17 @@ def _call(
         "latency_ms": report["latency_ms"],
         "kbps": kbps,
         "bytes": traffic,
+        "messages": messages,
+        "encrypted": True,
         "malformed": report["malformed"],
         "ended_by": report["ended_by"],
         "output": str(args.output),
     }
+
+
+def _by_size(sizes: Mapping[str, Counter[int]]) -> dict[str, list[list[int]]]:
+    """{channel: [[bytes, messages], ...]} in increasing size."""
+    return {ch: [[size, n] for size, n in sorted(c.items())] for ch, c in sizes.items()}
 
 
 def _kept(frames: Iterable[CapturedFrame], keep: Mp4Recorder | None) -> Iterator[CapturedFrame]:
