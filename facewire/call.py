@@ -35,6 +35,7 @@ from facewire.peer import (
     receiver_keys,
     sender_keys,
 )
+from facewire.watch import Watchers, add_watch_arguments, check_watch_arguments, wants_watching
 
 logger = logging.getLogger(__name__)
 
@@ -363,8 +364,10 @@ def run_receive(args: argparse.Namespace) -> int:
     address = address_from(args)
     keys = receiver_keys(args)
     _check_record(args.record)
-    with StopSignal() as stop:
-        stats = receive(args, address, keys, stop, once=args.once)
+    with StopSignal() as stop, Watchers(args, say) as watch:
+        stats = receive(
+            args, address, keys, watch.stop(stop), watch.tell, sink=watch.sink, once=args.once
+        )
     _write_stats(args.stats, stats)
     return 0
 
@@ -387,17 +390,29 @@ def _call_receiver(
     done: Any,
     results: Any,
 ) -> None:
-    """Child process (its own OpenGL context): receive the other end until told to stop."""
+    """Child process (its own OpenGL context): receive the other end until told to stop.
+
+    With a live view or a window it first says ("watching", None), or ("error", why).
+    """
     logging.basicConfig(level=level, format="%(asctime)s receive %(name)s: %(message)s")
     with StopSignal() as stop:
+        try:
+            watch = Watchers(args, lambda line: say(f"receive: {line}"))
+        except (OSError, ValueError, RuntimeError) as exc:
+            results.put(("error", str(exc)))
+            done.set()
+            return
+        if wants_watching(args):
+            results.put(("watching", None))
         try:
             stats = receive(
                 args,
                 address,
                 keys,
-                lambda: stop() or stop_event.is_set(),
-                lambda line: say(f"receive: {line}"),
+                watch.stop(lambda: stop() or stop_event.is_set()),
+                watch.tell,
                 offset,
+                sink=watch.sink,
                 once=True,
             )
             results.put(("ok", stats))
@@ -405,6 +420,7 @@ def _call_receiver(
             logger.debug("receiver failed", exc_info=True)
             results.put(("error", f"receiver: {exc}"))
         finally:
+            watch.close()
             done.set()
 
 
@@ -413,6 +429,7 @@ def run_call(args: argparse.Namespace) -> int:
     address = address_from(args, ports_used=CALL_PORTS)
     keys_out, keys_in = sender_keys(args), receiver_keys(args)
     _check_record(args.record)
+    check_watch_arguments(args)
     # The binding end sends on PORT, PORT+1; the connecting end on PORT+2, PORT+3.
     send_offset, receive_offset = (0, 2) if address.bind else (2, 0)
     ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
@@ -424,6 +441,14 @@ def run_call(args: argparse.Namespace) -> int:
     )
     child.start()
     try:
+        if wants_watching(args):
+            # A view that cannot be served (its port in use) ends the call before it starts.
+            try:
+                status, detail = results.get(timeout=60)
+            except queue.Empty:
+                raise RuntimeError("the receiving side did not start in time") from None
+            if status == "error":
+                raise RuntimeError(detail)
         with StopSignal() as stop:
             # The call ends when either end stops: here, or the other end's Bye.
             sent = send(
@@ -489,6 +514,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     add_address_arguments(p)
     p.add_argument("--record", metavar="FILE.mp4", help="record what is rebuilt")
     p.add_argument("--once", action="store_true", help="end when the first session ends")
+    add_watch_arguments(p)
     add_key_arguments(p, "the sender's public key file")
     _add_common(p)
     p.set_defaults(func=run_receive)
@@ -502,6 +528,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     add_address_arguments(p)
     _add_source_arguments(p)
     p.add_argument("--record", metavar="FILE.mp4", help="record the other end")
+    add_watch_arguments(p)
     add_key_arguments(p, "the other end's public key file")
     _add_common(p)
     p.set_defaults(func=run_call)
