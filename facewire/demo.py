@@ -28,6 +28,7 @@ from protocol.constants import CHANNELS
 from protocol.keys import write_keypair
 from protocol.transport import SenderEndpoint
 from receiver.recorder import Mp4Recorder, crop_to
+from sender.audio import sound_for, with_sound
 from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 from sender.session import run_sender, wait_until_ready
@@ -128,7 +129,15 @@ def _call(
             buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
             video.resync(len(buffered))
             keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
-            sender = run_sender(endpoint, encoder, _kept(itertools.chain(buffered, frames), keep))
+            sound = sound_for(
+                video.name if not video.is_camera else 0,
+                video.is_camera,
+                video.realtime,
+                endpoint.publish,
+                notify=print,
+            )
+            sent_frames = with_sound(itertools.chain(buffered, frames), sound, video.fps)
+            sender = run_sender(endpoint, encoder, _kept(sent_frames, keep))
             if keep is not None:
                 keep.close()
             status, report = results.get(timeout=RECEIVER_TIMEOUT_S)
@@ -171,6 +180,7 @@ def _call(
         "encrypted": True,
         "malformed": report["malformed"],
         "ended_by": report["ended_by"],
+        "audio": report.get("audio", {}),
         "output": str(args.output),
     }
 
@@ -222,8 +232,15 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
     )
     print(
         f"kbit/s: geometry {k['geometry']:.1f}  rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
-        f"control {k['control']:.2f}  total {k['total']:.1f}"
+        f"control {k['control']:.2f}  audio {k['audio']:.1f}  total {k['total']:.1f}"
     )
+    sound = stats.get("audio") or {}
+    if sound.get("packets"):
+        off = sound["av_offset_ms"]
+        print(
+            f"sound: {sound['played']} x 20 ms played, {sound['concealed']} concealed, "
+            f"sound minus face {off['p50']:+.0f} ms (p5 {off['p5']:+.0f}, p95 {off['p95']:+.0f})"
+        )
     print(
         f"sender {stats['sender_fps']:.0f} fps, receiver {stats['receiver_fps']:.0f} fps, "
         f"latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms"

@@ -47,6 +47,10 @@ MAX_AHEAD_FRAMES = 250
 RESTART_FRAMES = 250
 #: Margin the sound's own latency keeps over the slowest recent packet, µs.
 MARGIN_US = 10_000
+#: The least latency the sound starts with, µs: a packet is sent when the video frame after
+#: its 20 ms is read (up to 33 ms at 30 fps), so before the first packets have shown what
+#: the link does, this keeps them from being late.
+MIN_LATENCY_US = 60_000
 #: Recent packets (capture to arrival) and pictures (capture to screen) that set the latency.
 WINDOW = 100
 #: Audio latency samples kept for the figures (about 3 minutes of sound).
@@ -270,8 +274,8 @@ class AudioPlayout:
         self._base: tuple[int, int, int] = (0, 0, 0)  # (step, its capture µs, its local due µs)
         self._missing = 0  # steps in a row without a packet
         self._stop = False
-        #: (frame seq, capture µs) of the first keyframe: where the recording's video starts.
-        self.video_anchor: tuple[int, int] | None = None
+        #: (frame seq, capture µs) of keyframes: where the recording's frames were captured.
+        self.video_anchors: list[tuple[int, int]] = []
         self._thread = threading.Thread(target=self._run, name="audio-playout", daemon=True)
         self._thread.start()
 
@@ -279,8 +283,8 @@ class AudioPlayout:
 
     def push(self, packet: AudioFrame | KeyFrame, arrival_us: int | None = None) -> None:
         if isinstance(packet, KeyFrame):
-            if self.video_anchor is None:
-                self.video_anchor = (packet.seq, packet.capture_us)
+            if len(self.video_anchors) < MAX_SAMPLES:
+                self.video_anchors.append((packet.seq, packet.capture_us))
             return
         arrival = self._clock() if arrival_us is None else arrival_us
         with self._lock:
@@ -311,7 +315,7 @@ class AudioPlayout:
 
     def _latency(self) -> int:
         """How long after capture the next run of sound is played, µs."""
-        own = max(self._transit) + FRAME_US + MARGIN_US if self._transit else 0
+        own = max(MIN_LATENCY_US, max(self._transit, default=0) + FRAME_US + MARGIN_US)
         face = self._face_latency()
         return max(own, face if face is not None else own)
 
@@ -335,7 +339,9 @@ class AudioPlayout:
                 time.sleep(wait / 1e6)
             self._play(step, base_capture + (step - base_step) * FRAME_US)
 
-    def _play(self, step: int, capture_us: int) -> None:
+    def _play(self, step: int, run_us: int) -> None:
+        """Play ``step``; ``run_us`` is its capture time counted from the run's start (the
+        recording places it there, so a run is written without seams)."""
         with self._lock:
             packet = self._buffer.pop(step, None)
             self._next = step + 1
@@ -346,7 +352,6 @@ class AudioPlayout:
                 pcm = self._decoder.decode(packet.data)
                 report.played += 1
                 self._missing = 0
-                capture_us = packet.capture_us
             except AudioDecodeError as exc:
                 logger.debug("%s", exc)
                 report.malformed += 1
@@ -362,8 +367,8 @@ class AudioPlayout:
         played = self._clock() + self.sink.latency_us
         face = self._face_latency()
         if packet is not None and face is not None and len(report.latency_us) < MAX_SAMPLES:
-            report.latency_us.append((played - capture_us, face))
-        self._timeline.put(capture_us, pcm)
+            report.latency_us.append((played - packet.capture_us, face))
+        self._timeline.put(run_us, pcm)
         with self._lock:
             if self._missing >= RESYNC_FRAMES and not self._buffer:
                 self._next = None  # a pause: the next run chooses its latency again
@@ -384,10 +389,13 @@ class AudioPlayout:
         ``first_seq``: sample 0 of the result is that frame's instant."""
         pcm = self._timeline.read()
         start = self._timeline.start_us
-        if start is None or self.video_anchor is None:
+        if start is None or not self.video_anchors:
             return pcm[:0]
-        seq, capture = self.video_anchor
-        frame0_us = capture - (seq - first_seq) * 1e6 / fps
+        # The median over keyframes: one frame's capture time may be off (the first, read
+        # before the call began, is stamped when the call begins).
+        frame0_us = float(
+            np.median([c - (seq - first_seq) * 1e6 / fps for seq, c in self.video_anchors])
+        )
         shift = round((start - frame0_us) * AUDIO_RATE / 1e6)
         if shift >= 0:
             return np.concatenate([np.zeros(shift, np.int16), pcm])
@@ -458,3 +466,41 @@ def read_audio(path: str | Path, rate: int = AUDIO_RATE) -> np.ndarray:
             chunks += [f.to_ndarray().reshape(-1) for f in resampler.resample(frame)]
         chunks += [f.to_ndarray().reshape(-1) for f in resampler.resample(None)]
     return np.concatenate(chunks) if chunks else np.zeros(0, np.int16)
+
+
+class CallSound:
+    """The receive loop's sound: :func:`start` it with the first session, :meth:`push` it the
+    AudioFrame and KeyFrame packets, :meth:`finish` it after the recording is closed."""
+
+    def __init__(
+        self,
+        shown: list[tuple[int, int]],
+        first_seq: int,
+        fps: float,
+        notify: Callable[[str], None],
+        device: bool = True,
+    ) -> None:
+        sink, reason = open_sink(device)
+        if reason is not None:
+            notify(reason)
+        self.playout = AudioPlayout(sink, face_latency_from(shown))
+        self.first_seq = first_seq
+        self.fps = fps
+
+    def push(self, packet: AudioFrame | KeyFrame, arrival_us: int) -> None:
+        self.playout.push(packet, arrival_us)
+
+    def finish(self, output: str | Path | None) -> dict[str, Any]:
+        """Stop playing; put what was played into the MP4 at ``output`` (if any, and if
+        there was sound); the figures (:meth:`AudioReport.as_dict`)."""
+        self.playout.close()
+        try:
+            if output is not None and self.playout.report.packets:
+                pcm = self.playout.recorded(self.first_seq, self.fps)
+                try:
+                    mux_audio(output, pcm)
+                except Exception as exc:  # the video alone is still a good recording
+                    logger.warning("could not add the sound to %s: %s", output, exc)
+        finally:
+            self.playout.discard()
+        return self.playout.report.as_dict()

@@ -344,3 +344,37 @@ class MicrophoneTrack:
 
     def close(self) -> None:
         self._stream.close()
+
+
+def sound_for(
+    source: int | str | Path,
+    is_camera: bool,
+    realtime: bool,
+    publish: Callable[[AudioFrame], None],
+    settings: AudioSettings | None = None,
+    notify: Callable[[str], None] = logger.info,
+) -> AudioSender | None:
+    """The sound to send with a video ``source``, or None with one line to ``notify`` why.
+
+    A camera's sound is the default microphone's; a file's, its first audio track (the
+    bundled clip's speech lies beside it). A file read faster than its frame rate has no
+    clock to play sound on: it is sent without.
+    """
+    track: AudioTrack | None
+    try:
+        if is_camera:
+            track = MicrophoneTrack()
+        elif not realtime:
+            notify("no sound: the file is read faster than its frame rate")
+            return None
+        else:
+            track = open_track(source)
+            if track is None and Path(str(source)).name == "demo_clip.mp4":
+                track = open_track(demo_speech_path())
+            if track is None:
+                notify(f"{source} has no audio track: the call goes on without sound")
+                return None
+        return AudioSender(track, publish, settings)
+    except AudioError as exc:
+        notify(f"{exc}: the call goes on without sound")
+        return None
