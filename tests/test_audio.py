@@ -1,0 +1,208 @@
+"""Sound: AudioFrame packets, Opus through PyAV, the jitter buffer's concealment, odd inputs.
+
+Real parts: the bundled clip's speech track coded by libopus, decoded by the receiver's
+AudioPlayout on its own thread against the real clock (into a null sink: no sound device is
+needed), files made with PyAV.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.constants import AUDIO_FRAME_SAMPLES, AUDIO_RATE
+from protocol.packets import AudioFrame, KeyFrame, PacketError, decode
+from receiver.audio import AudioPlayout, NullSink, OpusDecoder, mux_audio, read_audio
+from sender.audio import AudioSender, AudioSettings, demo_speech_path, open_track, sound_for
+from sender.capture import demo_clip_path
+
+FIXTURES = Path(__file__).parent / "fixtures" / "packets"
+
+
+def coded_speech(**settings: object) -> list[AudioFrame]:
+    """The bundled clip's speech as the sender sends it (capture clock: 0 at frame 0)."""
+    out: list[AudioFrame] = []
+    track = open_track(demo_speech_path())
+    assert track is not None
+    sender = AudioSender(track, out.append, AudioSettings(**settings))  # type: ignore[arg-type]
+    for i in range(301):
+        sender.send_until(i / 30, i / 30, round(i * 1e6 / 30))
+    return out
+
+
+@pytest.fixture(scope="module")
+def speech() -> list[AudioFrame]:
+    return coded_speech()
+
+
+# --- packets ---------------------------------------------------------------------------------
+
+
+def test_fixture_is_a_real_opus_frame() -> None:
+    data = (FIXTURES / "audio_frame.bin").read_bytes()
+    packet = decode(data)
+    assert isinstance(packet, AudioFrame)
+    assert (packet.seq, packet.capture_us, len(packet.data)) == (305, 1_700_006_093_500, 22)
+    assert bytes(packet) == data and data[0] == 0x2A
+    assert len(OpusDecoder().decode(packet.data)) == AUDIO_FRAME_SAMPLES
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (b"\x2a" + bytes(12), "truncated AudioFrame: 13 bytes, needs at least 14"),
+        (b"\x2a\x01", "truncated AudioFrame: 2 bytes, needs at least 14"),
+        (b"\x2a" + bytes(12) + bytes(1276), "AudioFrame.data: 1276 bytes outside [1, 1275]"),
+    ],
+)
+def test_bad_audio_frames_are_refused_with_one_line(data: bytes, message: str) -> None:
+    with pytest.raises(PacketError) as exc:
+        decode(data)
+    assert str(exc.value) == message
+
+
+# --- coding ----------------------------------------------------------------------------------
+
+
+def test_speech_is_coded_near_the_bit_rate_asked_and_silence_is_left_out(speech) -> None:
+    talking = [p for p in speech if 300 <= p.seq <= 420]  # 6.0-8.4 s: the clip talks
+    kbps = sum(len(p.data) for p in talking) * 8 / (len(talking) * 0.02) / 1000
+    assert 8 < kbps < 16
+    # DTX: of 500 steps of which ~130 carry sound, the silent ones are not sent.
+    assert 100 < len(speech) < 200
+    louder = coded_speech(bitrate=24_000)
+    loud = [p for p in louder if 300 <= p.seq <= 420]
+    assert sum(len(p.data) for p in loud) > 1.6 * sum(len(p.data) for p in talking)
+    assert len(coded_speech(dtx=False)) == 500
+
+
+def test_capture_times_follow_the_video_clock(speech) -> None:
+    # Step s decodes to the input from s * 20 ms less the coder's look-ahead (6.5 ms).
+    for p in speech:
+        assert p.capture_us == pytest.approx(p.seq * 20_000 - 6_500, abs=50)
+
+
+# --- playout ---------------------------------------------------------------------------------
+
+
+def play(packets: list[AudioFrame], latency_us: int = 60_000) -> AudioPlayout:
+    """Play ``packets`` now, as if captured just now; wait until they are done."""
+    playout = AudioPlayout(NullSink(), lambda: latency_us)
+    shift = time.monotonic_ns() // 1000 - packets[0].capture_us
+    # Video frame 0 captured with the first packet: the recording starts with it.
+    playout.push(KeyFrame(0, 1, 0, packets[0].capture_us + shift, b""))
+    for p in packets:
+        playout.push(AudioFrame(p.seq, p.capture_us + shift, p.data), p.capture_us + shift)
+    span_s = (packets[-1].seq - packets[0].seq + 1) * 0.02
+    time.sleep(span_s + latency_us / 1e6 + 0.3)
+    playout.close()
+    return playout
+
+
+def talk(speech: list[AudioFrame]) -> list[AudioFrame]:
+    return [p for p in speech if 330 <= p.seq < 380]  # one second of continuous speech
+
+
+def test_a_lost_packet_is_concealed_by_the_codec(speech) -> None:
+    packets = talk(speech)
+    assert [p.seq for p in packets] == list(range(330, 380))
+    whole = play(packets)
+    lost = play([p for p in packets if p.seq != 355])
+    # The end of the sound is concealed the same way in both (the codec fades it out).
+    assert whole.report.played == 50 and lost.report.played == 49
+    assert lost.report.concealed == whole.report.concealed + 1
+    a, b = whole.recorded(0, 30.0), lost.recorded(0, 30.0)
+    at = 25 * AUDIO_FRAME_SAMPLES
+    gap = slice(at, at + AUDIO_FRAME_SAMPLES)
+    ref = a[gap].astype(float)
+    made_up = b[gap].astype(float)
+    # Not silence: the concealment continues the voice, closer to it than silence is.
+    assert np.sqrt(np.mean(made_up**2)) > 0.2 * np.sqrt(np.mean(ref**2))
+    assert np.mean((made_up - ref) ** 2) < np.mean(ref**2)
+    # Everything else is the same sound.
+    assert np.array_equal(a[:at], b[:at])
+    whole.discard()
+    lost.discard()
+
+
+def test_a_malformed_opus_packet_is_counted_and_concealed(speech) -> None:
+    packets = talk(speech)[:20]
+    bad = AudioFrame(packets[5].seq, packets[5].capture_us, bytes([0x4B]) + b"\xff" * 3)
+    played = play(packets[:5] + [bad] + packets[6:])
+    report = played.report
+    assert report.malformed == 1 and report.played == 19
+    assert report.concealed == 1 + 5  # the bad one, then the end's fade (CONCEAL_FRAMES)
+    assert len(played.recorded(0, 30.0)) >= 20 * AUDIO_FRAME_SAMPLES
+    played.discard()
+
+
+# --- inputs ----------------------------------------------------------------------------------
+
+
+def write_tone(path: Path, rate: int, layout: str, codec: str = "pcm_s16le") -> None:
+    import av
+
+    channels = {"mono": 1, "stereo": 2, "5.1": 6}[layout]
+    t = np.arange(rate // 2) / rate
+    tone = (0.3 * np.sin(2 * np.pi * 440 * t) * 32767).astype(np.int16)
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream(codec, rate=rate, layout=layout)
+        pcm = np.tile(tone, (channels, 1)) if channels > 1 else tone.reshape(1, -1)
+        frame = av.AudioFrame.from_ndarray(
+            np.ascontiguousarray(pcm.T.reshape(1, -1)), format="s16", layout=layout
+        )
+        frame.sample_rate = rate
+        for packet in stream.encode(frame):
+            out.mux(packet)
+        for packet in stream.encode(None):
+            out.mux(packet)
+
+
+@pytest.mark.parametrize(("rate", "layout"), [(8000, "mono"), (44100, "stereo"), (96000, "5.1")])
+def test_any_rate_and_layout_becomes_48_khz_mono(tmp_path: Path, rate: int, layout: str) -> None:
+    path = tmp_path / "tone.wav"
+    write_tone(path, rate, layout)
+    track = open_track(path)
+    assert track is not None
+    chunks = []
+    while (chunk := track.read(4800)) is not None:
+        chunks.append(chunk)
+    pcm = np.concatenate(chunks)
+    assert abs(len(pcm) - AUDIO_RATE // 2) < 100
+    spectrum = np.abs(np.fft.rfft(pcm.astype(float)))
+    assert abs(np.argmax(spectrum) * AUDIO_RATE / len(pcm) - 440) < 5
+
+
+def test_a_file_without_sound_is_said_in_one_line() -> None:
+    lines: list[str] = []
+    sender = sound_for(demo_clip_path().with_name("x.mp4"), False, True, print, notify=lines.append)
+    assert sender is None
+    assert len(lines) == 1 and "no audio track" in lines[0] or "cannot read sound" in lines[0]
+    # The bundled clip has no audio track either: its speech lies beside it.
+    assert open_track(demo_clip_path()) is None
+    assert sound_for(demo_clip_path(), False, True, print) is not None
+    lines.clear()
+    assert sound_for(demo_clip_path(), False, False, print, notify=lines.append) is None
+    assert lines == ["no sound: the file is read faster than its frame rate"]
+
+
+def test_mux_puts_the_sound_beside_the_video(tmp_path: Path) -> None:
+    import cv2
+
+    video = tmp_path / "v.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (64, 48))
+    for i in range(30):
+        writer.write(np.full((48, 64, 3), i * 8, np.uint8))
+    writer.release()
+    t = np.arange(AUDIO_RATE) / AUDIO_RATE
+    pcm = (0.3 * np.sin(2 * np.pi * 300 * t) * 32767).astype(np.int16)
+    mux_audio(video, pcm)
+    back = read_audio(video)
+    assert abs(len(back) - AUDIO_RATE) < 2048
+    n = min(len(back), len(pcm))
+    assert np.corrcoef(back[2048 : n - 2048], pcm[2048 : n - 2048])[0, 1] > 0.95
+    cap = cv2.VideoCapture(str(video))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 30
