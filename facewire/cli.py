@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
     _add_demo(sub)
+    from facewire import bandwidth
+
+    bandwidth.add_parser(sub)
     from facewire import call, keys, track, wirestool
 
     call.add_parsers(sub)

@@ -15,13 +15,16 @@ default.
 from __future__ import annotations
 
 import logging
-import math
 import os
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from fractions import Fraction
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from av.video.codeccontext import VideoCodecContext
 
 logger = logging.getLogger(__name__)
 
@@ -51,9 +54,10 @@ class CodecSpec:
     #: also set minrate = bitrate (libvpx chooses CBR when min = max = target)
     cbr_minrate: bool = False
 
-    def encoder_options(self, bitrate: int) -> dict[str, str]:
-        """Every AVOption given to the encoder at ``bitrate`` bit/s."""
-        rate = str(int(bitrate))
+    def encoder_options(self, bitrate: int | str) -> dict[str, str]:
+        """Every AVOption given to the encoder at ``bitrate`` bit/s (a string is put in as it
+        is: "RATE" describes the settings)."""
+        rate = bitrate if isinstance(bitrate, str) else str(int(bitrate))
         out = dict(self.options)
         out.update(b=rate, maxrate=rate, bufsize=rate, g=str(GOP_FRAMES))
         if self.cbr_minrate:
@@ -155,10 +159,9 @@ class Encoded:
 
     @property
     def steady_bps(self) -> float:
-        """Bits per second after the first packet (the key frame), over the frames after it."""
-        if self.frames < 2 or not self.packets:
-            return math.nan
-        return (self.bytes - len(self.packets[0])) * 8 / ((self.frames - 1) / self.fps)
+        """Bits per second of every packet but the first (the key frame), over the clip:
+        as a call's steady state is counted (after its snapshot)."""
+        return (self.bytes - self.first_packet_bytes) * 8 / self.duration_s
 
     @property
     def first_packet_bytes(self) -> int:
@@ -181,7 +184,7 @@ def encode(
 
     width, height = size
     rate = _frame_rate(fps)
-    ctx = av.CodecContext.create(spec.encoder, "w")
+    ctx = cast("VideoCodecContext", av.CodecContext.create(spec.encoder, "w"))
     ctx.width, ctx.height = width, height
     ctx.pix_fmt = "yuv420p"
     ctx.time_base = 1 / rate
@@ -219,7 +222,7 @@ def decode(encoded: Encoded, spec: CodecSpec, size: tuple[int, int]) -> Iterator
     import av
 
     width, height = size
-    ctx = av.CodecContext.create(spec.decoder, "r")
+    ctx = cast("VideoCodecContext", av.CodecContext.create(spec.decoder, "r"))
     rate = _frame_rate(encoded.fps)
     nxt = 0
 

@@ -1,0 +1,480 @@
+"""``facewire bandwidth``: our call next to H.264, VP9 and AV1 on the same clip.
+
+Our codec runs as ``facewire demo`` does (a real, paced loopback call between two processes,
+encrypted; run as a child process, as benchmarks/bench_quality.py runs it). The ordinary
+codecs encode the same frames with call settings (facewire.codecs) at each target rate and
+each rung of a resolution ladder. Every output is scored against the input by
+facewire.quality: frame i against frame i, luma SSIM and PSNR over the face, the head and the
+whole frame, regions from the input's own landmarks (tracked once).
+
+Rates are bits per second over the clip's duration: "amortised" counts everything (our
+snapshot, the codecs' key frame), "steady" everything after it. Our rates are per channel,
+as payload and on the wire (facewire.wire states the model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import math
+import os
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facewire import codecs, wire
+from facewire.quality import REGIONS, QualityReport, read_frames, score_frames
+from facewire.ratequality import envelope, quality_at, rate_for
+
+logger = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+DEFAULT_RATES_KBPS = "8,16,32,64"
+DEFAULT_LADDER = "1,0.5,0.25"
+#: Ladder rungs whose shorter side would be under this many pixels are left out.
+MIN_RUNG_SIDE = 64
+#: Quality regions compared in the final table and the plot.
+COMPARED = ("face", "head")
+ACCOUNTING = ("amortised", "steady")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "bandwidth",
+        help="our call against H.264, VP9 and AV1 on one clip: rates and region quality",
+        description=__doc__.split("\n\n")[1],
+    )
+    p.add_argument("--input", metavar="FILE", help="video file (default: the bundled clip)")
+    p.add_argument("--json", metavar="OUT.json", help="write every operating point")
+    p.add_argument("--plot", metavar="OUT.png", help="draw the rate-quality curves")
+    p.add_argument(
+        "--rates",
+        default=DEFAULT_RATES_KBPS,
+        metavar="KBPS,...",
+        help=f"codec target rates in kbit/s (default {DEFAULT_RATES_KBPS})",
+    )
+    p.add_argument(
+        "--codecs",
+        default=",".join(codecs.CODECS),
+        metavar="NAME,...",
+        help=f"codecs to run (default {','.join(codecs.CODECS)})",
+    )
+    p.add_argument(
+        "--ladder",
+        default=DEFAULT_LADDER,
+        metavar="SCALE,...",
+        help=f"frame sizes as fractions of the input's (default {DEFAULT_LADDER}; rungs under "
+        f"{MIN_RUNG_SIDE} px are left out)",
+    )
+    p.add_argument("--frames", type=int, metavar="N", help="use at most the first N frames")
+    p.add_argument(
+        "--fast", action="store_true", help="run our call unpaced (see facewire demo --fast)"
+    )
+
+    def run_command(args: argparse.Namespace) -> int:
+        return run(args)
+
+    p.set_defaults(func=run_command)
+
+
+def _numbers(text: str, option: str) -> list[float]:
+    values = []
+    for part in text.split(","):
+        try:
+            value = float(part)
+        except ValueError:
+            raise ValueError(f"{option}: {part.strip()!r} is not a number (in {text!r})") from None
+        if not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{option}: {part.strip()} is not a positive number")
+        values.append(value)
+    return sorted(set(values))
+
+
+def parse_rates(text: str) -> list[float]:
+    """Target rates in kbit/s from "8,16,32"."""
+    return _numbers(text, "--rates")
+
+
+def parse_ladder(text: str) -> list[float]:
+    """Scales from "1,0.5", largest first; each in (0, 1]."""
+    scales = _numbers(text, "--ladder")
+    if scales[-1] > 1:
+        raise ValueError(f"--ladder: {scales[-1]:g} is larger than the input (at most 1)")
+    return scales[::-1]
+
+
+def parse_codecs(text: str) -> list[codecs.CodecSpec]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise ValueError("--codecs: no codec named")
+    return [codecs.codec_spec(n) for n in dict.fromkeys(names)]
+
+
+def rungs(width: int, height: int, ladder: Sequence[float]) -> list[tuple[float, tuple[int, int]]]:
+    """(scale, (w, h)) of each ladder rung to encode, distinct sizes only."""
+    out: list[tuple[float, tuple[int, int]]] = []
+    for scale in ladder:
+        size = codecs.even_size(width, height, scale)
+        if min(size) < MIN_RUNG_SIDE and out:
+            logger.info("ladder rung %g (%dx%d) left out: under %d px", scale, *size, MIN_RUNG_SIDE)
+            continue
+        if all(size != s for _, s in out):
+            out.append((scale, size))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from sender.capture import VideoSource, demo_clip_path
+
+    rates = parse_rates(args.rates)
+    specs = parse_codecs(args.codecs)
+    ladder = parse_ladder(args.ladder)
+    if args.frames is not None and args.frames < 1:
+        raise ValueError(f"--frames must be at least 1, got {args.frames}")
+    codecs.check_available(specs)
+    for name, path in (("--json", args.json), ("--plot", args.plot)):
+        if path and not Path(path).resolve().parent.is_dir():
+            raise ValueError(f"{name}: folder {Path(path).parent} does not exist")
+    clip = Path(args.input) if args.input else demo_clip_path()
+    with VideoSource(clip) as video:  # a missing or unreadable file ends here, one line
+        width, height, fps = video.width, video.height, video.fps
+
+    landmarks = _track(clip, args.frames)
+    count = len(landmarks)
+    result: dict[str, Any] = {
+        "schema": SCHEMA_VERSION,
+        "input": str(clip),
+        "width": width,
+        "height": height,
+        "fps": fps,
+        "frames": count,
+        "untracked": sum(p is None for p in landmarks),
+        "settings": {
+            "rates_kbps": rates,
+            "ladder": [
+                {"scale": s, "width": w, "height": h} for s, (w, h) in rungs(width, height, ladder)
+            ],
+            "codecs": {
+                s.name: {
+                    "label": s.label,
+                    "encoder": s.encoder,
+                    "decoder": s.decoder,
+                    "options": s.encoder_options("RATE"),
+                }
+                for s in specs
+            },
+        },
+    }
+    with tempfile.TemporaryDirectory(prefix="facewire-bandwidth-") as tmp:
+        result["ours"] = run_ours(clip, count, fps, args.fast, landmarks, Path(tmp))
+    result["points"] = run_codecs(clip, count, fps, specs, rates, ladder, landmarks)
+    result["matches"] = matches(result["ours"], result["points"], [s.name for s in specs])
+    print_report(result, specs)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2, allow_nan=True) + "\n")
+        print(f"wrote {args.json}")
+    if args.plot:
+        from facewire.rdplot import plot
+
+        plot(result, Path(args.plot))
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _progress(total: int, desc: str) -> Any:
+    from tqdm import tqdm
+
+    # disable=None: no bar when stderr is not a terminal (a log file stays clean).
+    return tqdm(total=total, desc=desc, unit="", leave=False, disable=None, file=sys.stderr)
+
+
+def _frames(clip: Path, count: int | None) -> Iterator[np.ndarray]:
+    return itertools.islice(read_frames(clip), count)
+
+
+def _track(clip: Path, limit: int | None) -> list[np.ndarray | None]:
+    """The input's landmarks ((468, 3) image pixels, None without a face), frame by frame."""
+    from sender.landmarks import LandmarkTracker
+
+    tracker = LandmarkTracker()
+    out: list[np.ndarray | None] = []
+    with _progress(limit or 0, "tracking the input") as bar:
+        for frame in _frames(clip, limit):
+            found = tracker.track(frame)
+            out.append(None if found is None else found.points)
+            bar.update()
+    if not out:
+        raise ValueError(f"no frames in {clip}")
+    return out
+
+
+def _quality(report: QualityReport) -> dict[str, Any]:
+    d = report.as_dict()
+    return {"ssim": d["ssim"], "psnr_db": d["psnr_db"], "held": d["held"]}
+
+
+def run_call(clip: Path, frames: int, fast: bool, folder: Path) -> tuple[dict[str, Any], Path]:
+    """``facewire demo`` on ``clip`` as a child process: its stats and its recording."""
+    output, stats = folder / "call.mp4", folder / "call.json"
+    cmd = [sys.executable, "-m", "facewire", "demo", "--input", str(clip), "--frames", str(frames)]
+    cmd += ["--output", str(output), "--compare", "", "--stats", str(stats)]
+    if fast:
+        cmd.append("--fast")
+    env = dict(os.environ, PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "egl"))
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
+    if done.returncode != 0:
+        lines = done.stderr.strip().splitlines() or [f"exit status {done.returncode}"]
+        raise RuntimeError(f"our call failed: {lines[-1].removeprefix('facewire: error: ')}")
+    return json.loads(stats.read_text()), output
+
+
+def _kbps(nbytes: float, duration_s: float) -> float:
+    return nbytes * 8 / duration_s / 1000
+
+
+def our_rates(stats: dict[str, Any]) -> dict[str, Any]:
+    """Our call's kbit/s per channel from ``facewire demo``'s stats: payload, ZeroMQ stream
+    (framing and encryption) and IP packets (TCP/IP headers and ACKs), amortised and steady."""
+    duration = stats["duration_s"]
+    curve = bool(stats.get("encrypted", True))
+    costs = wire.channel_costs(stats["messages"], curve)
+    setup = wire.setup_cost(curve)
+    channels = list(stats["bytes"])
+    levels = {
+        "payload": {ch: _kbps(stats["bytes"][ch], duration) for ch in channels},
+        "zeromq": {ch: _kbps(costs[ch].zmtp, duration) for ch in channels},
+        "wire": {ch: _kbps(costs[ch].ip, duration) for ch in channels},
+    }
+    levels["zeromq"]["setup"] = _kbps(setup.zmtp, duration)
+    levels["wire"]["setup"] = _kbps(setup.ip, duration)
+    totals = {}
+    for level, by_channel in levels.items():
+        steady = sum(v for ch, v in by_channel.items() if ch not in ("snapshot", "setup"))
+        totals[level] = {"amortised": sum(by_channel.values()), "steady": steady}
+    return {
+        "kbps": totals,
+        "channels_kbps": levels,
+        "messages": {ch: costs[ch].messages for ch in channels},
+    }
+
+
+def run_ours(
+    clip: Path,
+    count: int,
+    fps: float,
+    fast: bool,
+    landmarks: list[np.ndarray | None],
+    folder: Path,
+) -> dict[str, Any]:
+    with _progress(1, "our call") as bar:
+        stats, output = run_call(clip, count, fast, folder)
+        bar.update()
+    report = score_frames(_frames(clip, count), read_frames(output), landmarks)
+    out: dict[str, Any] = {
+        "call": {
+            k: stats.get(k)
+            for k in ("frames_in", "frames_out", "frames_held", "frames_untracked", "encrypted")
+        },
+        "bytes": stats["bytes"],
+    }
+    out.update(our_rates(stats))
+    out["quality"] = _quality(report)
+    out["recording_ceiling"] = _quality(recording_ceiling(clip, count, fps, landmarks, folder))
+    return out
+
+
+def recording_ceiling(
+    clip: Path, count: int, fps: float, landmarks: list[np.ndarray | None], folder: Path
+) -> QualityReport:
+    """The input itself through the receiver's MP4 recorder: the best our scores can be."""
+    from receiver.recorder import Mp4Recorder
+
+    path = folder / "input-recorded.mp4"
+    frames = _frames(clip, count)
+    first = next(frames)
+    with Mp4Recorder(path, first.shape[1], first.shape[0], fps) as rec:
+        for frame in itertools.chain([first], frames):
+            rec.write(frame)
+    return score_frames(_frames(clip, count), read_frames(path), landmarks)
+
+
+def run_codecs(
+    clip: Path,
+    count: int,
+    fps: float,
+    specs: Sequence[codecs.CodecSpec],
+    rates_kbps: Sequence[float],
+    ladder: Sequence[float],
+    landmarks: list[np.ndarray | None],
+) -> list[dict[str, Any]]:
+    first = next(read_frames(clip))
+    height, width = first.shape[:2]
+    plan = [
+        (spec, scale, size, rate)
+        for spec in specs
+        for scale, size in rungs(width, height, ladder)
+        for rate in rates_kbps
+    ]
+    points = []
+    with _progress(len(plan), "codecs") as bar:
+        for spec, scale, size, rate in plan:
+            bar.set_postfix_str(f"{spec.name} {size[0]}x{size[1]} {rate:g} kbit/s")
+            encoded = codecs.encode(_frames(clip, count), spec, round(rate * 1000), size, fps)
+            decoded = codecs.decode(encoded, spec, (width, height))
+            report = score_frames(_frames(clip, count), decoded, landmarks)
+            duration = encoded.duration_s
+            wire_all = sum(wire.rtp_bytes(len(p)) for p in encoded.packets)
+            wire_first = wire.rtp_bytes(encoded.first_packet_bytes)
+            points.append(
+                {
+                    "codec": spec.name,
+                    "target_kbps": rate,
+                    "scale": scale,
+                    "width": size[0],
+                    "height": size[1],
+                    "frames": encoded.frames,
+                    "dropped": report.held,
+                    "keyframes": encoded.keyframes,
+                    "first_packet_bytes": encoded.first_packet_bytes,
+                    "bytes": encoded.bytes,
+                    "kbps": {
+                        "payload": {
+                            "amortised": encoded.bps / 1000,
+                            "steady": encoded.steady_bps / 1000,
+                        },
+                        "wire": {
+                            "amortised": _kbps(wire_all, duration),
+                            "steady": _kbps(wire_all - wire_first, duration),
+                        },
+                    },
+                    **_quality(report),
+                }
+            )
+            bar.update()
+    return points
+
+
+def codec_curve(
+    points: Sequence[dict[str, Any]], codec: str, region: str, accounting: str
+) -> list[tuple[float, float]]:
+    """A codec's envelope over its ladder: (kbit/s payload, SSIM of ``region``)."""
+    return envelope(
+        (p["kbps"]["payload"][accounting], p["ssim"][region]) for p in points if p["codec"] == codec
+    )
+
+
+def matches(
+    ours: dict[str, Any], points: Sequence[dict[str, Any]], names: Sequence[str]
+) -> list[dict[str, Any]]:
+    """For each codec, region and accounting: the rate it needs to match our SSIM, that rate
+    over ours, and its SSIM at our rate."""
+    out = []
+    for codec, region, accounting in itertools.product(names, COMPARED, ACCOUNTING):
+        our_rate = ours["kbps"]["payload"][accounting]
+        our_ssim = ours["quality"]["ssim"][region]
+        curve = codec_curve(points, codec, region, accounting)
+        need = rate_for(curve, our_ssim)
+        out.append(
+            {
+                "codec": codec,
+                "region": region,
+                "accounting": accounting,
+                "our_kbps": our_rate,
+                "our_ssim": our_ssim,
+                "codec_kbps": None if need is None else need.rate,
+                "bound": None if need is None else need.bound,
+                "times_ours": None if need is None else need.times(our_rate),
+                "codec_ssim_at_our_rate": quality_at(curve, our_rate),
+            }
+        )
+    return out
+
+
+def _f(value: float | None, digits: int = 1) -> str:
+    if value is None or math.isnan(value):
+        return "-"
+    return f"{value:.{digits}f}"
+
+
+def print_report(result: dict[str, Any], specs: Sequence[codecs.CodecSpec]) -> None:
+    ours = result["ours"]
+    print(
+        f"input {result['input']}: {result['frames']} frames, {result['width']}x"
+        f"{result['height']} at {result['fps']:.2f} fps ({result['untracked']} without a face)"
+    )
+    levels = ours["channels_kbps"]
+    channels = list(levels["wire"])
+    print("our call, kbit/s   " + "".join(f"{c:>10}" for c in channels) + "     total    steady")
+    for level, name in (("payload", "payload"), ("zeromq", "ZeroMQ+CURVE"), ("wire", "TCP/IP")):
+        row = [levels[level].get(c) for c in channels]
+        tot = ours["kbps"][level]
+        print(
+            f"  {name:<16}"
+            + "".join(f"{_f(v, 2):>10}" for v in row)
+            + f"{_f(tot['amortised'], 2):>10}{_f(tot['steady'], 2):>10}"
+        )
+    q, ceiling = ours["quality"], ours["recording_ceiling"]
+    print(
+        "our call, SSIM / PSNR dB: "
+        + ", ".join(f"{r} {q['ssim'][r]:.3f} / {q['psnr_db'][r]:.1f}" for r in REGIONS)
+        + f" (the recording alone: face {ceiling['ssim']['face']:.3f})"
+    )
+    print("\ncodec operating points (payload kbit/s amortised / steady; SSIM face, head, frame):")
+    for spec in specs:
+        print(f"  {spec.label}")
+        for p in (p for p in result["points"] if p["codec"] == spec.name):
+            k = p["kbps"]["payload"]
+            s = p["ssim"]
+            print(
+                f"    {p['width']:>4}x{p['height']:<4} target {p['target_kbps']:>6g}: "
+                f"{k['amortised']:7.1f} / {k['steady']:7.1f}   "
+                f"{s['face']:.3f}  {s['head']:.3f}  {s['frame']:.3f}"
+                + (f"  ({p['dropped']} dropped)" if p["dropped"] else "")
+            )
+    print(
+        "\nrate each codec needs for our SSIM (best ladder rung at each rate; amortised: the "
+        "whole clip with our snapshot and their key frame, steady: after them)"
+    )
+    print(
+        f"  {'codec':<6}{'region':<7}{'our SSIM':>9}  {'amortised kbit/s':>17} {'x ours':>7}  "
+        f"{'steady kbit/s':>14} {'x ours':>7}   its SSIM at our rate (amortised / steady)"
+    )
+    for spec in specs:
+        for region in COMPARED:
+            by = {
+                m["accounting"]: m
+                for m in result["matches"]
+                if m["codec"] == spec.name and m["region"] == region
+            }
+            a, s = by["amortised"], by["steady"]
+            print(
+                f"  {spec.name:<6}{region:<7}{a['our_ssim']:>9.3f}  "
+                f"{_need(a):>17} {_times(a):>7}  {_need(s):>14} {_times(s):>7}   "
+                f"{_f(a['codec_ssim_at_our_rate'], 3)} / {_f(s['codec_ssim_at_our_rate'], 3)}"
+            )
+    a_rate, s_rate = ours["kbps"]["payload"]["amortised"], ours["kbps"]["payload"]["steady"]
+    print(
+        f"  (ours: {a_rate:.1f} kbit/s amortised, {s_rate:.1f} steady; "
+        "- : outside the rates measured)"
+    )
+
+
+def _need(m: dict[str, Any]) -> str:
+    if m["codec_kbps"] is None:
+        return "-"
+    prefix = {"=": "", "<=": "<= ", ">": "> "}[m["bound"]]
+    return f"{prefix}{m['codec_kbps']:.1f}"
+
+
+def _times(m: dict[str, Any]) -> str:
+    if m["times_ours"] is None:
+        return "-"
+    prefix = {"=": "", "<=": "<=", ">": ">"}[m["bound"]]
+    return f"{prefix}{m['times_ours']:.2f}"
