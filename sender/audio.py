@@ -368,7 +368,7 @@ def sound_for(
             notify("no sound: the file is read faster than its frame rate")
             return None
         else:
-            track = open_track(source)
+            track = open_track(str(source))
             if track is None and Path(str(source)).name == "demo_clip.mp4":
                 track = open_track(demo_speech_path())
             if track is None:
