@@ -112,8 +112,5 @@ class Watchers:
 
 def _url_to_open(view: Any) -> str:
     if view.host in _EVERY_INTERFACE:
-        return (
-            f"http://localhost:{view.port}/ (port {view.port} on every interface: "
-            f"http://THIS_MACHINE:{view.port}/ from another one)"
-        )
+        return f"http://localhost:{view.port}/ (served on every interface, port {view.port})"
     return view.url

@@ -225,10 +225,19 @@ def _busy_port() -> tuple[socket.socket, int]:
         "no-keys-and-not-plain",
         "camera-that-does-not-exist",
         "record-into-missing-folder",
+        "view-address-without-port",
+        "view-host-unknown",
+        "view-port-in-use",
+        "view-port-in-use-in-a-call",
+        "window-without-display",
+        "window-without-display-in-a-call",
     ],
 )
-def test_bad_use_ends_with_one_line_and_status_1(tmp_path: Path, keys: Path, case: str) -> None:
-    port = free_ports(2)
+def test_bad_use_ends_with_one_line_and_status_1(
+    tmp_path: Path, keys: Path, case: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)  # as on a server, or over ssh without -X
+    port = free_ports(4)
     busy, busy_port = _busy_port()
     here = f"tcp://127.0.0.1:{port}"
     key = ("--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key"))
@@ -296,6 +305,30 @@ def test_bad_use_ends_with_one_line_and_status_1(tmp_path: Path, keys: Path, cas
         "record-into-missing-folder": (
             ["receive", "--bind", here, *key, "--record", str(tmp_path / "no" / "x.mp4")],
             f"folder {tmp_path / 'no'} does not exist",
+        ),
+        "view-address-without-port": (
+            ["receive", "--bind", here, "--plain", "--view", "8080"],
+            "invalid live view address '8080': expected HOST:PORT",
+        ),
+        "view-host-unknown": (
+            ["receive", "--bind", here, "--plain", "--view", "no-such-host.invalid:8080"],
+            "cannot serve the live view on no-such-host.invalid:8080: cannot resolve",
+        ),
+        "view-port-in-use": (
+            ["receive", "--bind", here, "--plain", "--view", f"127.0.0.1:{busy_port}"],
+            f"cannot serve the live view on 127.0.0.1:{busy_port}: address already in use",
+        ),
+        "view-port-in-use-in-a-call": (
+            ["call", "--bind", here, "--plain", "--view", f"127.0.0.1:{busy_port}"],
+            f"cannot serve the live view on 127.0.0.1:{busy_port}: address already in use",
+        ),
+        "window-without-display": (
+            ["receive", "--bind", here, "--plain", "--window"],
+            "cannot open a window: no display (DISPLAY is not set)",
+        ),
+        "window-without-display-in-a-call": (
+            ["call", "--bind", here, "--plain", "--window"],
+            "cannot open a window: no display (DISPLAY is not set)",
         ),
     }
     args, expected = commands[case]
