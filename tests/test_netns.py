@@ -7,23 +7,33 @@ missing ones. The receiver must still rebuild every frame (frame i of the record
 frame i of the input), never freeze longer than a keyframe interval, and the latency must
 show the link's delay without piling up. Skipped, with the reason, where namespaces cannot be
 made (not root, no ``ip``).
+
+The receiver's live view, as the README sets it up (``--view 0.0.0.0:8080``), is opened by a
+headless Chromium in the receiver's namespace and its screenshots checked for the face and
+the figures (tests/view_check.py).
 """
 
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
+import browser
 import pytest
 from cli_call import Facewire, count_frames, run_facewire
 from netns_pair import ADDRESS_B, Netem, TwoHosts, unavailable
 from test_call_commands import MIN_FACE_SSIM, face_ssim
+from view_check import check_page
 
 REASON = unavailable()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"no network namespaces: {REASON}")
 
 FRAMES = 150
 PORT = 5555
+VIEW_PORT = 8080
 #: No frame may wait this long (a stuck or queueing call): TCP's retransmission of a lost
 #: segment costs at least its 200 ms minimum timeout, plus the 80 ms round trip.
 MAX_LATENCY_MS = 2000.0
@@ -65,3 +75,52 @@ def test_call_between_two_namespaces_over_a_lossy_delayed_link(tmp_path: Path) -
     assert latency["max"] < MAX_LATENCY_MS, latency
     for _first, length in report["freezes"]:
         assert length <= report["keyframe_interval"], report["freezes"]
+
+
+@pytest.mark.skipif(
+    browser.unavailable() is not None, reason=f"no headless Chromium: {browser.unavailable()}"
+)
+def test_live_view_in_the_receivers_namespace_shows_the_face(tmp_path: Path) -> None:
+    keys = tmp_path / "keys"
+    keys.mkdir()
+    for name in ("alice", "bob"):
+        assert run_facewire("keys", "--out", str(keys), "--name", name).returncode == 0
+    with TwoHosts(Netem(delay_ms=40, jitter_ms=10, loss=0.05)) as hosts:
+        print(f"link: {hosts.how}")
+        # As the README has it: bob receives and serves the page on every interface.
+        receiver = Facewire(
+            "receive", "--bind", f"tcp://*:{PORT}", "--view", f"0.0.0.0:{VIEW_PORT}",
+            "--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key"),
+            prefix=hosts.command(hosts.b), name="receiver in b",
+        )  # fmt: skip
+        sender = None
+        try:
+            receiver.expect(f"live view on http://localhost:{VIEW_PORT}/")
+            sender = Facewire(
+                "send", "--connect", f"tcp://{ADDRESS_B}:{PORT}", "--loop",
+                "--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key"),
+                prefix=hosts.command(hosts.a), name="sender in a",
+            )  # fmt: skip
+            receiver.expect("session ")
+            url = f"http://{ADDRESS_B}:{VIEW_PORT}/"
+            looked = subprocess.run(
+                [*hosts.command(hosts.b), sys.executable, browser.__file__, url,
+                 "--out", str(tmp_path)],
+                capture_output=True, text=True, timeout=300,
+            )  # fmt: skip
+            result = json.loads(looked.stdout.strip().splitlines()[-1])
+            assert "looks" in result, result
+            for seen in check_page(result["looks"]):
+                print(f"{seen.page['fps']} fps, {seen.page['latency']}, clip frame "
+                      f"{seen.clip_frame}, face SSIM {seen.face_ssim:.3f}")  # fmt: skip
+            sender.signal(signal.SIGTERM)
+            assert sender.wait() == 0, sender.output()
+            receiver.signal(signal.SIGTERM)
+            assert receiver.wait() == 0, receiver.output()
+        finally:
+            for process in (sender, receiver):
+                if process is not None:
+                    process.kill()
+    # Both namespaces share the clock: the page's latency includes the link's delay.
+    latency = min(float(look["page"]["latency"].split()[0]) for look in result["looks"])
+    assert latency >= 30, result["looks"]
