@@ -101,6 +101,28 @@ def _size(text: str) -> tuple[int, int]:
     return width, height
 
 
+def _playout_delay(text: str) -> float | None:
+    if text == "auto":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected milliseconds or auto, got {text!r}") from None
+    if not 0 <= value <= 2000:
+        raise argparse.ArgumentTypeError(f"expected 0 to 2000 ms, got {text!r}")
+    return value
+
+
+def _display_fps(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected frames per second, got {text!r}") from None
+    if not 0 < value <= 240:
+        raise argparse.ArgumentTypeError(f"expected above 0 and at most 240 fps, got {text!r}")
+    return value
+
+
 def _timeout(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -329,9 +351,11 @@ def receive(
     ``sink`` gets every rendered picture (receiver.session.FrameSink): the seam for a live
     view. Raises TransportError when ``args.join_timeout`` passes before any sender comes.
     """
+    from receiver.playout import PlayoutSettings
     from receiver.session import run_receiver
 
     timeout = args.join_timeout or math.inf
+    playout = PlayoutSettings(args.playout_delay, args.display_fps)
     report = run_receiver(
         address.host,
         *address.ports(offset),
@@ -341,6 +365,7 @@ def receive(
         sink=sink,
         stop=stop,
         notify=tell,
+        playout=playout,
         bind=address.bind,
         **keys,
     )
@@ -491,6 +516,24 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stats", metavar="FILE.json", help="write the figures as JSON at the end")
 
 
+def _add_playout(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--playout-delay",
+        type=_playout_delay,
+        metavar="MS",
+        default=None,
+        help="time the jitter buffer adds to even out the network's jitter, in ms; 0 shows "
+        "each frame as it arrives (default: auto, adapted to the jitter seen)",
+    )
+    p.add_argument(
+        "--display-fps",
+        type=_display_fps,
+        metavar="N",
+        help="pictures per second on screen, in between frames blended feature by feature "
+        "(default: the sender's frame rate)",
+    )
+
+
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     """Register ``send``, ``receive`` and ``call``."""
     p = subparsers.add_parser(
@@ -515,6 +558,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--record", metavar="FILE.mp4", help="record what is rebuilt")
     p.add_argument("--once", action="store_true", help="end when the first session ends")
     add_watch_arguments(p)
+    _add_playout(p)
     add_key_arguments(p, "the sender's public key file")
     _add_common(p)
     p.set_defaults(func=run_receive)
@@ -529,6 +573,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     _add_source_arguments(p)
     p.add_argument("--record", metavar="FILE.mp4", help="record the other end")
     add_watch_arguments(p)
+    _add_playout(p)
     add_key_arguments(p, "the other end's public key file")
     _add_common(p)
     p.set_defaults(func=run_call)

@@ -23,7 +23,10 @@ from protocol.clock import now_us
 from protocol.packets import Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.decoder import FaceDecoder
+from receiver.interpolation import Painter
+from receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
 from receiver.recording import BackgroundRecorder
+from receiver.smoothness import display_figures
 
 logger = logging.getLogger(__name__)
 
@@ -59,9 +62,19 @@ class ReceiverReport:
     bytes_sent: dict[str, int] = field(default_factory=dict)
     ended_by: str = ""
     keyframe_interval: int = 0  # frames, the last session's (a freeze should not outlast it)
+    # Playout: its settings, the delay the buffer aimed at (the last session's, µs), display
+    # ticks passed over because the loop was busy, how long each frame shown as it is waited
+    # in the buffer (ms), and every picture shown: (ready, depicted instant) µs.
+    playout: str = ""
+    display_fps: float = 0.0
+    playout_delay_us: int = 0
+    ticks_missed: int = 0
+    buffer_ms: list[float] = field(default_factory=list)
+    shown: list[tuple[int, int]] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
+        wait = np.asarray(self.buffer_ms) if self.buffer_ms else np.zeros(1)
         return {
             "frames_out": self.frames_out,
             "frames_held": self.frames_held,
@@ -83,16 +96,32 @@ class ReceiverReport:
             "bytes_sent": dict(self.bytes_sent),
             "ended_by": self.ended_by,
             "keyframe_interval": self.keyframe_interval,
+            "playout": {
+                "mode": self.playout,
+                "display_fps": self.display_fps,
+                "delay_ms": self.playout_delay_us / 1000.0,
+                "buffer_ms": {
+                    "p50": float(np.percentile(wait, 50)),
+                    "p99": float(np.percentile(wait, 99)),
+                },
+                "ticks_missed": self.ticks_missed,
+                "display": display_figures(
+                    self.shown, 1e6 / self.display_fps if self.display_fps else 0.0
+                ),
+            },
         }
 
 
 @dataclass(frozen=True)
 class RenderedFrame:
-    """A picture the receiver has just rendered (held pictures are not passed again).
+    """A picture the receiver has just put on screen (held pictures are not passed again).
 
+    seq : the sender's frame it shows, or (a picture between two frames) the one before it
     image : (h, w, 3) uint8 BGR at the session's size
-    capture_us : when the sender captured the frame (the sender's monotonic clock, µs)
-    latency_ms : capture to this rendered picture, meaningful where both ends share a clock
+    capture_us : the instant it shows on the sender's clock (its monotonic clock, µs): the
+        frame's capture time, or a time between two frames' for a picture between them
+    latency_ms : that instant to this rendered picture, meaningful where both ends share a
+        clock
     """
 
     session_id: int
@@ -127,6 +156,7 @@ def run_receiver(
     sink: FrameSink | None = None,
     stop: Callable[[], bool] = _never,
     notify: Callable[[str], None] = _quiet,
+    playout: PlayoutSettings | None = None,
     **endpoint_options: Any,
 ) -> ReceiverReport:
     """Join the call at ``host`` and record the rebuilt frames to ``output`` (None: no file).
@@ -135,11 +165,12 @@ def run_receiver(
     (``secret_key_file`` and ``server_key_file`` for CURVE, or ``plain=True``) and
     ``bind=True`` to bind on ``host`` for a sender that connects.
 
-    Frame i of the recording rebuilds the sender's frame i: a frame with no packet (nothing
-    changed, or the packet was lost) repeats the previous picture, so the recording stays
-    aligned. When several packets are waiting, all are decoded (each delta needs the one
-    before) but only the newest is rendered (and passed to ``sink``). After a gap the picture
-    holds and a keyframe is requested until one arrives.
+    Frames are played out as ``playout`` says (receiver/playout.py; default: a jitter buffer
+    whose delay adapts to the network's jitter, pictures at the sender's frame rate): every
+    picture put on screen is passed to ``sink``. Frame i of the recording rebuilds the
+    sender's frame i: a frame with no packet (nothing changed, or the packet was lost) or one
+    that came too late to be shown repeats the previous picture, so the recording stays
+    aligned. After a gap the picture holds and a keyframe is requested until one arrives.
 
     A session ends with the sender's Bye, when the sender is silent for PEER_TIMEOUT_S, or when
     it restarts (a new session on the same address). With ``rejoin_timeout_s`` > 0 the
@@ -152,6 +183,8 @@ def run_receiver(
     TransportError when no sender came within ``join_timeout_s``.
     """
     report = ReceiverReport()
+    settings = playout or PlayoutSettings()
+    report.playout = settings.describe()
     with ReceiverEndpoint(host, pub_port, snapshot_port, **endpoint_options) as endpoint:
         ports = endpoint.ports
         how = "on" if endpoint_options.get("bind") else "at"
@@ -176,7 +209,9 @@ def run_receiver(
                 )
                 out = _Output(recorder, sink, snapshot.session_id, report)
                 before = report.frames_out
-                report.ended_by = _receive_session(endpoint, snapshot, out, report, started, stop)
+                report.ended_by = _receive_session(
+                    endpoint, snapshot, out, report, started, stop, settings
+                )
                 frames = report.frames_out - before
                 snapshot = None
                 if report.ended_by == "stopped":
@@ -250,17 +285,14 @@ class _Output:
         return image if self.size is None else _fit(image, self.size)
 
     def write(self, image: np.ndarray) -> None:
+        """Frame ``frames_out`` of the recording."""
         if self.recorder is not None:
             self.recorder.write(image)
         self.report.frames_out += 1
 
-    def rendered(self, image: np.ndarray, values: FrameValues, latency_ms: float) -> None:
-        self.write(image)
+    def show(self, image: np.ndarray, seq: int, media_us: int, latency_ms: float) -> None:
         if self.sink is not None:
-            self.sink(
-                RenderedFrame(self.session_id, values.seq, image, values.capture_us, latency_ms),
-                self.report,
-            )
+            self.sink(RenderedFrame(self.session_id, seq, image, media_us, latency_ms), self.report)
 
 
 def _receive_session(
@@ -270,69 +302,135 @@ def _receive_session(
     report: ReceiverReport,
     started: float,
     stop: Callable[[], bool],
+    settings: PlayoutSettings,
 ) -> str:
-    """Rebuild and record one session's frames; returns why it ended."""
+    """Rebuild, show and record one session's frames; returns why it ended."""
     decoder = FaceDecoder(snapshot)
     try:
+        playout = make_playout(settings, snapshot.fps)
+        report.display_fps = settings.display_fps or snapshot.fps
+        player = _Player(Painter(decoder), out, report, snapshot, started)
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
         # ask for the keyframe that starts our chain.
         endpoint.send_stats({"ready": 1.0})
         endpoint.request_keyframe(snapshot.seq)
         last_request = time.monotonic()
-        next_seq = snapshot.seq
-        stale_from: int | None = None  # first frame shown stale because the chain broke
-        last: np.ndarray | None = None
+        broken = False  # the chain broke since the last frame decoded
+        needed = snapshot.seq  # the first frame not decoded yet
         while True:
             if stop():
                 return "stopped"
-            newest: FrameValues | None = None
             try:
-                packet = endpoint.recv(timeout_ms=200)
+                packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(now_us()) / 1e6))
                 while packet is not None and not isinstance(packet, Bye):
                     if isinstance(packet, (KeyFrame, DeltaFrame)):
                         values = _decode(decoder, packet, report)
-                        if values is not None and values.seq >= next_seq:
-                            report.frames_skipped += newest is not None
-                            newest = values
+                        if values is None:
+                            broken = True
+                        else:
+                            playout.push(values, now_us(), broken)
+                            broken = False
+                            needed = max(needed, values.seq + 1)
                     packet = endpoint.recv(timeout_ms=0)
             except RejoinNeeded as exc:
                 return f"sender restarted ({exc})"
             if not decoder.channels.intact:
-                if stale_from is None and last is not None:
-                    stale_from = next_seq
                 if time.monotonic() - last_request > KEYFRAME_RETRY_S:
-                    endpoint.request_keyframe(next_seq)
+                    endpoint.request_keyframe(needed)
                     report.keyframe_requests += 1
                     last_request = time.monotonic()
-            if newest is not None:
-                start = time.perf_counter()
-                report.frames_held += _hold(out, last, newest.seq - next_seq)
-                if stale_from is not None:
-                    report.freezes.append((stale_from, newest.seq - stale_from))
-                    stale_from = None
-                picture = out.fit(decoder.reconstruct(newest))
-                if last is None:
-                    report.first_frame_s.append(time.monotonic() - started)
-                    # Frames of the session's first second that came before its first
-                    # decodable packet show that first picture, so the recording stays
-                    # aligned; a late joiner's recording starts where it joined.
-                    early = newest.seq - next_seq
-                    if early <= snapshot.fps:
-                        report.frames_held += _hold(out, picture, early)
-                last = picture
-                latency_ms = (now_us() - newest.capture_us) / 1000.0
-                report.latency_ms.append(latency_ms)
-                report.bytes_received = dict(endpoint.bytes_received)
-                out.rendered(last, newest, latency_ms)
-                report.busy_s += time.perf_counter() - start
-                next_seq = newest.seq + 1
+            player.run(playout.poll(now_us()), endpoint)
+            _note_playout(report, playout)
             if isinstance(packet, Bye):
-                report.frames_held += _hold(out, last, packet.seq - next_seq)
+                # Play out what the buffer still holds, at its pace, then end.
+                while playout.pending and not stop():
+                    time.sleep(min(playout.wait_us(now_us()) / 1e6, STOP_CHECK_S))
+                    player.run(playout.poll(now_us()), endpoint)
+                _note_playout(report, playout)
+                report.frames_held += _hold(out, player.last, packet.seq - player.next_seq)
                 return "bye"
-            if packet is None and newest is None and not endpoint.peer_alive:
+            if packet is None and not playout.pending and not endpoint.peer_alive:
                 return "peer lost"
     finally:
         decoder.close()
+
+
+def _note_playout(report: ReceiverReport, playout: Playout) -> None:
+    report.playout_delay_us = playout.delay_us
+    report.ticks_missed = getattr(playout, "ticks_missed", 0)
+
+
+class _Player:
+    """Carries out the playout's steps: draws, records, shows, and counts."""
+
+    def __init__(
+        self,
+        painter: Painter,
+        out: _Output,
+        report: ReceiverReport,
+        snapshot: Snapshot,
+        started: float,
+    ) -> None:
+        self.painter = painter
+        self.out = out
+        self.report = report
+        self.snapshot = snapshot
+        self.started = started
+        self.next_seq = snapshot.seq  # the recording's next frame
+        self.last: np.ndarray | None = None  # the recording's last picture
+        self.stale_from: int | None = None  # first frame of a freeze (packets were lost)
+
+    def run(self, steps: list[Step], endpoint: ReceiverEndpoint) -> None:
+        for step in steps:
+            start = time.perf_counter()
+            if isinstance(step, Record):
+                self.record(step)
+            else:
+                self.show(step, endpoint)
+            self.report.busy_s += time.perf_counter() - start
+
+    def record(self, step: Record) -> None:
+        report, out = self.report, self.out
+        if step.after_gap and self.stale_from is None and self.last is not None:
+            self.stale_from = self.next_seq
+        if step.values is None:  # too late to be shown
+            report.frames_skipped += 1
+            if self.last is not None:  # else the first picture fills it (below)
+                report.frames_held += _hold(out, self.last, step.seq + 1 - self.next_seq)
+                self.next_seq = max(self.next_seq, step.seq + 1)
+            return
+        report.frames_held += _hold(out, self.last, step.seq - self.next_seq)
+        if self.stale_from is not None:
+            report.freezes.append((self.stale_from, step.seq - self.stale_from))
+            self.stale_from = None
+        picture = out.fit(self.painter.exact(step.values))
+        if self.last is None:
+            report.first_frame_s.append(time.monotonic() - self.started)
+            # Frames of the session's first second that came before its first decodable
+            # packet show that first picture, so the recording stays aligned; a late
+            # joiner's recording starts where it joined.
+            early = step.seq - self.next_seq
+            if early <= self.snapshot.fps:
+                report.frames_held += _hold(out, picture, early)
+        out.write(picture)
+        self.last = picture
+        self.next_seq = step.seq + 1
+
+    def show(self, step: Show, endpoint: ReceiverEndpoint) -> None:
+        if step.b is None:
+            picture = self.painter.exact(step.a)
+        else:
+            picture = self.painter.between(step.a, step.b, step.t)
+        picture = self.out.fit(picture)
+        ready = now_us()
+        latency_ms = (ready - step.media_us) / 1000.0
+        report = self.report
+        report.latency_ms.append(latency_ms)
+        report.shown.append((ready, step.media_us))
+        if step.arrival_us is not None:
+            report.buffer_ms.append((ready - step.arrival_us) / 1000.0)
+        report.bytes_received = dict(endpoint.bytes_received)
+        self.out.show(picture, step.a.seq, step.media_us, latency_ms)
 
 
 def _ms(seconds: float) -> int:

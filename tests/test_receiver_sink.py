@@ -20,7 +20,7 @@ STOP_AFTER = 45  # rendered pictures
 def _receiver(ports: tuple[int, int], output: str, keys: dict[str, Any], results: Any) -> None:
     from receiver.session import ReceiverReport, RenderedFrame, run_receiver
 
-    seen: list[tuple[int, int, tuple[int, ...], float, float, int]] = []
+    seen: list[tuple[int, int, tuple[int, ...], float, float, int, int]] = []
 
     def sink(frame: RenderedFrame, report: ReceiverReport) -> None:
         seen.append(
@@ -31,6 +31,7 @@ def _receiver(ports: tuple[int, int], output: str, keys: dict[str, Any], results
                 float(frame.image.mean()),
                 frame.latency_ms,
                 report.bytes_received.get("geometry", 0),
+                frame.capture_us,
             )
         )
 
@@ -77,10 +78,14 @@ def test_sink_sees_each_rendered_picture_and_stop_ends_the_call(tmp_path: Path) 
                 process.kill()
     assert sent.stopped and sent.frames_in < 300
     assert report["ended_by"] == "stopped"
-    assert len(seen) == STOP_AFTER == report["frames_out"] - report["frames_held"]
-    sessions, seqs, shapes, means, latencies, geometry = zip(*seen, strict=True)
+    # Every frame recorded as its own picture was shown; the screen may also show pictures
+    # between two frames (receiver/playout.py), which the recording leaves out.
+    assert len(seen) == STOP_AFTER >= report["frames_out"] - report["frames_held"] > 30
+    sessions, seqs, shapes, means, latencies, geometry, instants = zip(*seen, strict=True)
     assert set(sessions) == {snapshot.session_id}
-    assert list(seqs) == sorted(set(seqs))  # each picture once, in order
+    assert list(seqs) == sorted(seqs) and len(set(seqs)) > 30  # in order
+    # Each instant once, in order.
+    assert all(a < b for a, b in zip(instants, instants[1:], strict=False))
     assert set(shapes) == {(snapshot.height, snapshot.width, 3)}
     assert min(means) > 20  # a picture, not a black frame
     assert all(0 < ms < 5000 for ms in latencies)

@@ -1,0 +1,128 @@
+"""Pictures between two received frames: the face's parameters blended feature by feature.
+
+A frame's parameters are the head's pose, the rig's wire parameters and the camera's motion.
+Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
+
+- the wire parameters blend feature by feature (seed 000, section 5, Fig. 4-6, through
+  :func:`models.blending.blend`): the eyes' curves follow sqrt(t), the mouth's t^3 and every
+  other feature t, so eyes and mouth move on their own curves;
+- the head turns along the shortest arc between the two rotations (slerp) at an even rate,
+  its scale changes geometrically and its position linearly: a rigid head, never a blend of
+  matrices (which shears the face in a fast turn);
+- the scene's four corners move linearly (the camera's motion as the protocol carries it).
+
+:class:`Painter` draws exact frames and blends through one :class:`~receiver.decoder.FaceDecoder`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from models.blending import blend
+from models.camera import corners_from_homography, homography_from_corners
+from models.pose import Pose
+from protocol.channels import FrameValues
+
+if TYPE_CHECKING:
+    from receiver.decoder import FaceDecoder
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class FaceState:
+    """What one picture shows: the head's pose, (P,) wire parameters and the camera's
+    (3, 3) homography from the snapshot frame."""
+
+    pose: Pose
+    wires: np.ndarray
+    camera: np.ndarray
+
+
+def blend_pose(a: Pose, b: Pose, t: float) -> Pose:
+    """The pose a fraction ``t`` of the way from ``a`` to ``b``: rotation by slerp, scale
+    geometric (log-linear), translation linear. t = 0 gives ``a``, t = 1 gives ``b``."""
+    _check_t(t)
+    if t == 0.0:
+        return a
+    if t == 1.0:
+        return b
+    turn = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a.rotation, b.rotation])))
+    rotation = turn([t]).as_matrix()[0]
+    scale = float(np.exp((1.0 - t) * np.log(a.scale) + t * np.log(b.scale)))
+    translation = (1.0 - t) * a.translation + t * b.translation
+    return Pose(rotation, scale, translation)
+
+
+def blend_camera(a: np.ndarray, b: np.ndarray, t: float, width: int, height: int) -> np.ndarray:
+    """(3, 3) homography whose frame corners lie a fraction ``t`` of the way between where
+    homographies ``a`` and ``b`` put them (width x height frame)."""
+    _check_t(t)
+    ca = corners_from_homography(a, width, height)
+    cb = corners_from_homography(b, width, height)
+    return homography_from_corners((1.0 - t) * ca + t * cb, width, height)
+
+
+def blend_state(
+    a: FaceState,
+    b: FaceState,
+    t: float,
+    groups: dict[str, np.ndarray],
+    size: tuple[int, int],
+) -> FaceState:
+    """The face a fraction ``t`` of the way from ``a`` to ``b``.
+
+    groups : feature name -> indices into the wire parameters (WireDeformer.feature_groups())
+    size : (width, height) of the frame, for the camera's corners
+    """
+    return FaceState(
+        blend_pose(a.pose, b.pose, t),
+        blend(a.wires, b.wires, t, groups),
+        blend_camera(a.camera, b.camera, t, *size),
+    )
+
+
+def _check_t(t: float) -> None:
+    if not 0.0 <= t <= 1.0:
+        raise ValueError(f"blend time must lie in [0, 1], got {t}")
+
+
+class Painter:
+    """Draws a frame's own picture, or one between two frames, with one decoder.
+
+    The last exact picture is kept: a frame written to the recording and then shown on
+    screen (or the reverse) is rendered once.
+    """
+
+    def __init__(self, decoder: FaceDecoder) -> None:
+        self.decoder = decoder
+        self.groups = decoder.wires.feature_groups()
+        height, width = decoder.background.shape[:2]
+        self.size = (width, height)
+        self._last: tuple[FrameValues, np.ndarray] | None = None
+
+    def state(self, values: FrameValues) -> FaceState:
+        pose, params = self.decoder.parameters(values)
+        return FaceState(pose, params, self.decoder.camera(values))
+
+    def exact(self, values: FrameValues) -> np.ndarray:
+        """(h, w, 3) uint8 BGR picture of one frame, as :meth:`FaceDecoder.reconstruct`."""
+        if self._last is not None and self._last[0] is values:
+            return self._last[1]
+        image = self.decoder.reconstruct(values)
+        self._last = (values, image)
+        return image
+
+    def between(self, a: FrameValues, b: FrameValues, t: float) -> np.ndarray:
+        """(h, w, 3) uint8 BGR picture a fraction ``t`` of the way from frame a to frame b."""
+        if t == 0.0:
+            return self.exact(a)
+        if t == 1.0:
+            return self.exact(b)
+        s = blend_state(self.state(a), self.state(b), t, self.groups, self.size)
+        return self.decoder.draw(s.pose, s.wires, s.camera)

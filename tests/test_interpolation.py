@@ -1,0 +1,137 @@
+"""Pictures between two received frames, with real frames of the bundled clip and real
+rendering: eyes and mouth move on their own curves (seed 000's feature-wise blending: eyes
+sqrt(t), mouth t^3), the head turns as a rigid body.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from models.camera import corners_from_homography, homography_from_corners
+from models.face_channels import WIRE
+from models.pose import Pose
+from protocol.channels import FrameValues
+from protocol.packets import DeltaFrame, KeyFrame, decode
+from receiver.interpolation import Painter, blend_camera, blend_pose, blend_state
+from sender.capture import VideoSource, demo_clip_path
+
+NEUTRAL, BLINK = 0, 140  # the clip's frame 140: surprise, eyes shut, jaw open
+LIDS = ((159, 145), (386, 374))  # upper and lower lid of each eye
+LIPS = (13, 14)  # inner upper and lower lip
+
+
+def _lid_gap(vertices: np.ndarray) -> float:
+    return float(sum(np.linalg.norm(vertices[a] - vertices[b]) for a, b in LIDS))
+
+
+def _mouth_gap(vertices: np.ndarray) -> float:
+    return float(np.linalg.norm(vertices[LIPS[0]] - vertices[LIPS[1]]))
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """A decoder of a real session and the values of the neutral and the blink frame."""
+    from receiver.decoder import FaceDecoder
+    from sender.encoder import FaceEncoder
+
+    with VideoSource(demo_clip_path()) as video:
+        clip = list(video.frames(limit=BLINK + 1))
+    first = clip[0].image
+    encoder = FaceEncoder(first.shape[1], first.shape[0], 30.0)
+    snapshot = encoder.start(clip[0])
+    assert snapshot is not None
+    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    shown: dict[int, FrameValues] = {}
+    last = None
+    for f in clip:
+        sent = encoder.encode(f)
+        packet = None if sent is None else decode(bytes(sent))
+        if isinstance(packet, (KeyFrame, DeltaFrame)):
+            last = decoder.decode(packet)
+        shown[f.index] = last
+    a = shown[NEUTRAL]
+    # The blink frame's expression with the neutral frame's head and camera: only the face
+    # moves between the two.
+    b = FrameValues(
+        a.seq + 1,
+        a.capture_us + 33_333,
+        {name: (shown[BLINK].values[name] if name == WIRE else v) for name, v in a.values.items()},
+    )
+    yield decoder, a, b
+    decoder.close()
+
+
+def test_eyes_and_mouth_move_on_their_own_curves(frames) -> None:
+    decoder, a, b = frames
+    painter = Painter(decoder)
+    ends = [decoder.wires.deform(painter.state(v).wires) for v in (a, b)]
+    lids = [_lid_gap(v) for v in ends]
+    mouths = [_mouth_gap(v) for v in ends]
+    assert lids[0] - lids[1] > 0.5 and mouths[1] - mouths[0] > 0.2  # a blink, an open jaw
+    for t in (0.25, 0.5, 0.75):
+        state = blend_state(painter.state(a), painter.state(b), t, painter.groups, painter.size)
+        between = decoder.wires.deform(state.wires)
+        lid = (_lid_gap(between) - lids[0]) / (lids[1] - lids[0])
+        mouth = (_mouth_gap(between) - mouths[0]) / (mouths[1] - mouths[0])
+        # Each lies between the two frames, on its feature's curve (other features' wires
+        # reach a little into each region).
+        assert abs(lid - np.sqrt(t)) < 0.08, (t, lid)
+        assert abs(mouth - t**3) < 0.08, (t, mouth)
+
+
+def test_the_picture_between_shows_the_eyes_ahead_and_the_mouth_behind(frames) -> None:
+    decoder, a, b = frames
+    painter = Painter(decoder)
+    image_a = painter.exact(a).astype(np.int16)
+    image_b = painter.exact(b).astype(np.int16)
+    middle = painter.between(a, b, 0.5).astype(np.int16)
+    vertices = decoder.image_vertices(a)
+
+    def box(indices: list[int]) -> tuple[slice, slice]:
+        xy = vertices[indices, :2]
+        (x0, y0), (x1, y1) = xy.min(0) - 6, xy.max(0) + 6
+        return slice(int(y0), int(y1) + 1), slice(int(x0), int(x1) + 1)
+
+    eyes = box([33, 133, 159, 145, 263, 362, 386, 374])
+    mouth = box([61, 291, 0, 17, 13, 14])
+
+    def diff(x: np.ndarray, y: np.ndarray, where: tuple[slice, slice]) -> float:
+        return float(np.abs(x[where] - y[where]).mean())
+
+    assert diff(image_a, image_b, eyes) > 2 and diff(image_a, image_b, mouth) > 2
+    # Halfway in time the eyes are sqrt(0.5) = 71% shut, the mouth 1/8 open.
+    assert diff(middle, image_b, eyes) < diff(middle, image_a, eyes)
+    assert diff(middle, image_a, mouth) < diff(middle, image_b, mouth)
+    # The ends are the frames themselves.
+    assert np.array_equal(painter.between(a, b, 0.0), image_a)
+    assert np.array_equal(painter.between(a, b, 1.0), image_b)
+
+
+def test_the_head_turns_along_the_shortest_arc() -> None:
+    turn_a = Rotation.from_euler("y", -30, degrees=True)
+    turn_b = Rotation.from_euler("xy", [20, 50], degrees=True)
+    a = Pose((turn_a.as_matrix()), 4.0, np.array([100.0, 50.0, 0.0]))
+    b = Pose((turn_b.as_matrix()), 9.0, np.array([300.0, 150.0, 10.0]))
+    angle = (turn_a.inv() * turn_b).magnitude()
+    for t in (0.1, 0.5, 0.9):
+        pose = blend_pose(a, b, t)
+        here = Rotation.from_matrix(pose.rotation)
+        # On the arc: t of the angle from a, the rest to b.
+        assert (turn_a.inv() * here).magnitude() == pytest.approx(t * angle, abs=1e-9)
+        assert (here.inv() * turn_b).magnitude() == pytest.approx((1 - t) * angle, abs=1e-9)
+        assert pose.scale == pytest.approx(4.0 ** (1 - t) * 9.0**t)
+        assert np.allclose(pose.translation, (1 - t) * a.translation + t * b.translation)
+    assert blend_pose(a, b, 0.0) is a and blend_pose(a, b, 1.0) is b
+    with pytest.raises(ValueError, match=r"blend time must lie in \[0, 1\], got 1.5"):
+        blend_pose(a, b, 1.5)
+
+
+def test_the_scene_moves_with_its_corners() -> None:
+    still = np.eye(3)
+    moved = homography_from_corners(np.array([8.0, -4, 6, 2, -3, 5, 1, 1]), 640, 480)
+    half = blend_camera(still, moved, 0.5, 640, 480)
+    assert np.allclose(
+        corners_from_homography(half, 640, 480), [4.0, -2, 3, 1, -1.5, 2.5, 0.5, 0.5]
+    )
