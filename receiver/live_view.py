@@ -225,7 +225,11 @@ class LiveView:
         app.router.add_get("/stream.mjpg", self._stream)
         app.router.add_get("/picture.jpg", self._still)
         app.router.add_get("/figures.json", self._figures)
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        # A viewer that goes away ends its stream at once (handler cancelled), not at the next
+        # picture, which may be long in coming when the call is between sessions.
+        self._runner = web.AppRunner(
+            app, access_log=None, shutdown_timeout=1.0, handler_cancellation=True
+        )
         await self._runner.setup()
         await web.SockSite(self._runner, sock).start()
 
