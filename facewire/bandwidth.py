@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from facewire import codecs, wire
-from facewire.quality import REGIONS, QualityReport, read_frames, score_frames
-from facewire.ratequality import envelope, quality_at, rate_for
+from facewire.quality import QualityReport, read_frames, score_frames
+from facewire.rdreport import break_even, matches, print_report
 
 logger = logging.getLogger(__name__)
 
@@ -40,9 +40,6 @@ DEFAULT_RATES_KBPS = "8,16,32,64"
 DEFAULT_LADDER = "1,0.5,0.25"
 #: Ladder rungs whose shorter side would be under this many pixels are left out.
 MIN_RUNG_SIDE = 64
-#: Quality regions compared in the final table and the plot.
-COMPARED = ("face", "head")
-ACCOUNTING = ("amortised", "steady")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -176,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
         result["ours"] = run_ours(clip, count, fps, args.fast, landmarks, Path(tmp))
     result["points"] = run_codecs(clip, count, fps, specs, rates, ladder, landmarks)
     result["matches"] = matches(result["ours"], result["points"], [s.name for s in specs])
+    result["break_even"] = break_even(result)
     print_report(result, specs)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2, allow_nan=True) + "\n")
@@ -359,122 +357,3 @@ def run_codecs(
             )
             bar.update()
     return points
-
-
-def codec_curve(
-    points: Sequence[dict[str, Any]], codec: str, region: str, accounting: str
-) -> list[tuple[float, float]]:
-    """A codec's envelope over its ladder: (kbit/s payload, SSIM of ``region``)."""
-    return envelope(
-        (p["kbps"]["payload"][accounting], p["ssim"][region]) for p in points if p["codec"] == codec
-    )
-
-
-def matches(
-    ours: dict[str, Any], points: Sequence[dict[str, Any]], names: Sequence[str]
-) -> list[dict[str, Any]]:
-    """For each codec, region and accounting: the rate it needs to match our SSIM, that rate
-    over ours, and its SSIM at our rate."""
-    out = []
-    for codec, region, accounting in itertools.product(names, COMPARED, ACCOUNTING):
-        our_rate = ours["kbps"]["payload"][accounting]
-        our_ssim = ours["quality"]["ssim"][region]
-        curve = codec_curve(points, codec, region, accounting)
-        need = rate_for(curve, our_ssim)
-        out.append(
-            {
-                "codec": codec,
-                "region": region,
-                "accounting": accounting,
-                "our_kbps": our_rate,
-                "our_ssim": our_ssim,
-                "codec_kbps": None if need is None else need.rate,
-                "bound": None if need is None else need.bound,
-                "times_ours": None if need is None else need.times(our_rate),
-                "codec_ssim_at_our_rate": quality_at(curve, our_rate),
-            }
-        )
-    return out
-
-
-def _f(value: float | None, digits: int = 1) -> str:
-    if value is None or math.isnan(value):
-        return "-"
-    return f"{value:.{digits}f}"
-
-
-def print_report(result: dict[str, Any], specs: Sequence[codecs.CodecSpec]) -> None:
-    ours = result["ours"]
-    print(
-        f"input {result['input']}: {result['frames']} frames, {result['width']}x"
-        f"{result['height']} at {result['fps']:.2f} fps ({result['untracked']} without a face)"
-    )
-    levels = ours["channels_kbps"]
-    channels = list(levels["wire"])
-    print("our call, kbit/s   " + "".join(f"{c:>10}" for c in channels) + "     total    steady")
-    for level, name in (("payload", "payload"), ("zeromq", "ZeroMQ+CURVE"), ("wire", "TCP/IP")):
-        row = [levels[level].get(c) for c in channels]
-        tot = ours["kbps"][level]
-        print(
-            f"  {name:<16}"
-            + "".join(f"{_f(v, 2):>10}" for v in row)
-            + f"{_f(tot['amortised'], 2):>10}{_f(tot['steady'], 2):>10}"
-        )
-    q, ceiling = ours["quality"], ours["recording_ceiling"]
-    print(
-        "our call, SSIM / PSNR dB: "
-        + ", ".join(f"{r} {q['ssim'][r]:.3f} / {q['psnr_db'][r]:.1f}" for r in REGIONS)
-        + f" (the recording alone: face {ceiling['ssim']['face']:.3f})"
-    )
-    print("\ncodec operating points (payload kbit/s amortised / steady; SSIM face, head, frame):")
-    for spec in specs:
-        print(f"  {spec.label}")
-        for p in (p for p in result["points"] if p["codec"] == spec.name):
-            k = p["kbps"]["payload"]
-            s = p["ssim"]
-            print(
-                f"    {p['width']:>4}x{p['height']:<4} target {p['target_kbps']:>6g}: "
-                f"{k['amortised']:7.1f} / {k['steady']:7.1f}   "
-                f"{s['face']:.3f}  {s['head']:.3f}  {s['frame']:.3f}"
-                + (f"  ({p['dropped']} dropped)" if p["dropped"] else "")
-            )
-    print(
-        "\nrate each codec needs for our SSIM (best ladder rung at each rate; amortised: the "
-        "whole clip with our snapshot and their key frame, steady: after them)"
-    )
-    print(
-        f"  {'codec':<6}{'region':<7}{'our SSIM':>9}  {'amortised kbit/s':>17} {'x ours':>7}  "
-        f"{'steady kbit/s':>14} {'x ours':>7}   its SSIM at our rate (amortised / steady)"
-    )
-    for spec in specs:
-        for region in COMPARED:
-            by = {
-                m["accounting"]: m
-                for m in result["matches"]
-                if m["codec"] == spec.name and m["region"] == region
-            }
-            a, s = by["amortised"], by["steady"]
-            print(
-                f"  {spec.name:<6}{region:<7}{a['our_ssim']:>9.3f}  "
-                f"{_need(a):>17} {_times(a):>7}  {_need(s):>14} {_times(s):>7}   "
-                f"{_f(a['codec_ssim_at_our_rate'], 3)} / {_f(s['codec_ssim_at_our_rate'], 3)}"
-            )
-    a_rate, s_rate = ours["kbps"]["payload"]["amortised"], ours["kbps"]["payload"]["steady"]
-    print(
-        f"  (ours: {a_rate:.1f} kbit/s amortised, {s_rate:.1f} steady; "
-        "- : outside the rates measured)"
-    )
-
-
-def _need(m: dict[str, Any]) -> str:
-    if m["codec_kbps"] is None:
-        return "-"
-    prefix = {"=": "", "<=": "<= ", ">": "> "}[m["bound"]]
-    return f"{prefix}{m['codec_kbps']:.1f}"
-
-
-def _times(m: dict[str, Any]) -> str:
-    if m["times_ours"] is None:
-        return "-"
-    prefix = {"=": "", "<=": "<=", ">": ">"}[m["bound"]]
-    return f"{prefix}{m['times_ours']:.2f}"

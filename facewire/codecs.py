@@ -7,9 +7,9 @@ packets' bytes), not taken from the target. Decoding gives frame i for input fra
 frame number the encoder was given (its pts); a frame the encoder dropped is None, and the
 quality metric holds the previous one in its place.
 
-Colour: BGR frames go to YUV 4:2:0 and back through libswscale, scaled (for the lower rungs
-of the resolution ladder) with its bicubic filter, as FFmpeg's ``scale`` filter does by
-default.
+Colour: frames go from RGB to YUV 4:2:0 and back through libswscale, scaled (for the lower
+rungs of the resolution ladder) with its bicubic filter, as FFmpeg's ``scale`` filter does by
+default; the same as the ffmpeg program does with an RGB input.
 """
 
 from __future__ import annotations
@@ -205,7 +205,10 @@ def encode(
             out.keyframes += bool(p.is_keyframe)
 
     for i, image in enumerate(frames):
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="bgr24")
+        # As RGB: libswscale has a fast BGR24 -> YUV 4:2:0 path of its own whose rounding
+        # differs from the one every other RGB input (the ffmpeg program's included) takes.
+        rgb = np.ascontiguousarray(image[..., ::-1])
+        frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
         frame = frame.reformat(width, height, "yuv420p", interpolation=SCALER)
         frame.pts = i
         take(ctx.encode(frame))
@@ -243,8 +246,8 @@ def decode(encoded: Encoded, spec: CodecSpec, size: tuple[int, int]) -> Iterator
             nxt += 1
         if index >= encoded.frames:
             break
-        rgb = picture.reformat(width, height, "bgr24", interpolation=SCALER)
-        yield rgb.to_ndarray()
+        rgb = picture.reformat(width, height, "rgb24", interpolation=SCALER).to_ndarray()
+        yield np.ascontiguousarray(rgb[..., ::-1])
         nxt += 1
     while nxt < encoded.frames:
         yield None

@@ -28,7 +28,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     matplotlib.use("Agg")  # files only: no display here
     import matplotlib.pyplot as plt
 
-    from facewire.bandwidth import COMPARED, codec_curve
+    from facewire.rdreport import COMPARED, codec_curve
 
     ours = result["ours"]
     labels = {name: c["label"] for name, c in result["settings"]["codecs"].items()}
