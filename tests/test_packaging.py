@@ -79,6 +79,8 @@ def test_compose_file_is_valid_and_runs_a_call_between_two_services() -> None:
     assert received.bind == f"tcp://*:{port}" and sent.connect == f"tcp://receiver:{port}"
     assert Path(received.key).stem == Path(sent.peer[0]).stem == "receiver"
     assert Path(sent.key).stem == Path(received.peer[0]).stem == "sender"
+    # The receiver serves its live view on the published port, on every interface.
+    assert received.view == "0.0.0.0:8080"
     assert services["keys"]["volumes"][0].startswith("keys:/keys")
     # The image renders through EGL.
     dockerfile = (ROOT / "Dockerfile").read_text()
