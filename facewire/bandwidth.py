@@ -9,7 +9,8 @@ whole frame, regions from the input's own landmarks (tracked once).
 
 Rates are bits per second over the clip's duration: "amortised" counts everything (our
 snapshot, the codecs' key frame), "steady" everything after it. Our rates are per channel,
-as payload and on the wire (facewire.wire states the model).
+as payload and on the wire (facewire.wire states the model); our totals leave the sound out
+(the codecs compared carry none).
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ logger = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 DEFAULT_RATES_KBPS = "8,16,32,64"
 DEFAULT_LADDER = "1,0.5,0.25"
+#: Channels left out of our totals: the codecs compared carry no sound.
+NOT_PICTURE = ("audio",)
 #: Ladder rungs whose shorter side would be under this many pixels are left out.
 MIN_RUNG_SIDE = 64
 
@@ -254,8 +257,9 @@ def our_rates(stats: dict[str, Any]) -> dict[str, Any]:
     levels["wire"]["setup"] = _kbps(setup.ip, duration)
     totals = {}
     for level, by_channel in levels.items():
-        steady = sum(v for ch, v in by_channel.items() if ch not in ("snapshot", "setup"))
-        totals[level] = {"amortised": sum(by_channel.values()), "steady": steady}
+        picture = {ch: v for ch, v in by_channel.items() if ch not in NOT_PICTURE}
+        steady = sum(v for ch, v in picture.items() if ch not in ("snapshot", "setup"))
+        totals[level] = {"amortised": sum(picture.values()), "steady": steady}
     return {
         "kbps": totals,
         "channels_kbps": levels,

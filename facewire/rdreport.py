@@ -96,7 +96,11 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
     )
     levels = ours["channels_kbps"]
     channels = list(levels["wire"])
-    print("our call, kbit/s   " + "".join(f"{c:>10}" for c in channels) + "     total    steady")
+    print(
+        "our call, kbit/s   "
+        + "".join(f"{c:>10}" for c in channels)
+        + "     total    steady  (totals: the picture, sound left out)"
+    )
     for level, name in (("payload", "payload"), ("zeromq", "ZeroMQ+CURVE"), ("wire", "TCP/IP")):
         row = [levels[level].get(c) for c in channels]
         tot = ours["kbps"][level]
