@@ -47,7 +47,8 @@ from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.channel_filter import ChannelSmoother
-from sender.landmarks import LandmarkTracker
+from sender.landmarks import Landmarks, LandmarkTracker
+from sender.lift import MarkerFaceTracker, MarkerFit
 from sender.rem import RemEncoder
 from sender.texture import UvRasteriser
 
@@ -118,7 +119,7 @@ class FaceEncoder:
         width: int,
         height: int,
         fps: float,
-        tracker: LandmarkTracker | None = None,
+        tracker: LandmarkTracker | MarkerFaceTracker | None = None,
         rig: Rig | None = None,
         session_id: int | None = None,
         error_px: float = DEFAULT_ERROR_PX,
@@ -127,7 +128,7 @@ class FaceEncoder:
         rem: bool = True,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
-        self.tracker = tracker or LandmarkTracker()
+        self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
         self.rig = rig or load_rig()
         self.basis = basis or load_wire_basis()
         self.canonical = load_canonical()
@@ -165,7 +166,7 @@ class FaceEncoder:
         ``seq`` is the first frame number the snapshot is valid for (default: this frame's).
         """
         found = self.tracker.track(frame.image)
-        if found is None:
+        if not isinstance(found, Landmarks):  # a marker tracker gives landmarks here too
             return None
         points = found.points
         pose = estimate_pose(
@@ -186,7 +187,9 @@ class FaceEncoder:
                 break
             side //= 2
         meta: dict[str, str | int | float] = {
-            "tracker": "mediapipe-landmarks",
+            "tracker": "markers"
+            if isinstance(self.tracker, MarkerFaceTracker)
+            else "mediapipe-landmarks",
             "texture_size": side,
         }
         if self.use_rem:
@@ -200,6 +203,8 @@ class FaceEncoder:
             meta["rem_patch_size"] = patch_side
         self._patches = []
         self.session = SessionModel(mesh, texture, background)
+        if isinstance(self.tracker, MarkerFaceTracker):
+            self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         self.wires.prepare_fit()
         self.rest_params = self.wires.rest_params()
@@ -257,10 +262,16 @@ class FaceEncoder:
         found = self.tracker.track(image)
         if found is None:
             return None
-        points = found.points
         base = self.session.mesh.vertices
-        pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
-        params = self.wires.fit(pose.inverse(points))
+        if isinstance(found, MarkerFit):
+            # Markers: pose and a dense displacement, lifted and spread by the tracker.
+            pose = found.pose
+            params = self.wires.fit_displacement(found.displacement)
+            points = pose.apply(base + found.displacement)
+        else:
+            points = found.points
+            pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
+            params = self.wires.fit(pose.inverse(points))
         if self.camera is not None:
             homography = self.camera.update(image, points[self.canonical.outline, :2])
             self._camera_shift = corners_from_homography(homography, self.width, self.height)
