@@ -109,6 +109,12 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
             + "".join(f"{_f(v, 2):>10}" for v in row)
             + f"{_f(tot['amortised'], 2):>10}{_f(tot['steady'], 2):>10}"
         )
+    call = ours["call"]
+    print(
+        f"our call: {call['frames_in']} frames in, {call['frames_out']} out, "
+        f"{call['frames_held']} of them the picture before held by the receiver (a paced call: "
+        "a loaded machine or a late packet makes it hold)"
+    )
     q, ceiling = ours["quality"], ours["recording_ceiling"]
     print(
         "our call, SSIM / PSNR dB: "

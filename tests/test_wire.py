@@ -141,6 +141,10 @@ def test_zmtp_stream_bytes_are_the_model_to_the_byte(
     heartbeat = wire.zmtp_message(len(bytes(sender._heartbeat())), curve)
     lost, rest = divmod(expected["down"]["PUB"] - down, heartbeat)
     assert rest == 0 and 0 <= lost < sum(sender.sizes_sent["control"].values()), (down, lost)
+    # Both ends count the same messages.
+    assert receiver.sizes_sent["control"] == sender.sizes_received["control"]
+    assert receiver.sizes_received["geometry"] == sender.sizes_sent["geometry"]
+    assert receiver.sizes_received["snapshot"] == sender.sizes_sent["snapshot"]
     assert sender.sizes_sent["geometry"][len(bytes(sent[0]))] == 1
     assert sum(sender.sizes_sent["geometry"].values()) == len(sent)
 
