@@ -70,11 +70,15 @@ class ReceiverReport:
     playout_delay_us: int = 0
     ticks_missed: int = 0
     buffer_ms: list[float] = field(default_factory=list)
+    # Capture (the sender's stamp) to arrival of each frame decoded, ms: its spread is the
+    # network's jitter; the values themselves mean something only where the ends share a clock.
+    arrival_ms: list[float] = field(default_factory=list)
     shown: list[tuple[int, int]] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
         wait = np.asarray(self.buffer_ms) if self.buffer_ms else np.zeros(1)
+        arrival = np.asarray(self.arrival_ms) if self.arrival_ms else np.zeros(1)
         return {
             "frames_out": self.frames_out,
             "frames_held": self.frames_held,
@@ -100,6 +104,10 @@ class ReceiverReport:
                 "mode": self.playout,
                 "display_fps": self.display_fps,
                 "delay_ms": self.playout_delay_us / 1000.0,
+                "arrival_ms": {
+                    "min": float(arrival.min()),
+                    **{f"p{q}": float(np.percentile(arrival, q)) for q in (50, 90, 95, 99)},
+                },
                 "buffer_ms": {
                     "p50": float(np.percentile(wait, 50)),
                     "p99": float(np.percentile(wait, 99)),
@@ -328,7 +336,9 @@ def _receive_session(
                         if values is None:
                             broken = True
                         else:
-                            playout.push(values, now_us(), broken)
+                            arrival = now_us()
+                            playout.push(values, arrival, broken)
+                            report.arrival_ms.append((arrival - values.capture_us) / 1000.0)
                             broken = False
                             needed = max(needed, values.seq + 1)
                     packet = endpoint.recv(timeout_ms=0)
