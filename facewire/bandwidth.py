@@ -78,10 +78,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--fast", action="store_true", help="run our call unpaced (see facewire demo --fast)"
     )
 
-    def run_command(args: argparse.Namespace) -> int:
-        return run(args)
-
-    p.set_defaults(func=run_command)
+    p.set_defaults(func=run)
 
 
 def _numbers(text: str, option: str) -> list[float]:
@@ -179,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     result["break_even"] = break_even(result)
     print_report(result, specs)
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2, allow_nan=True) + "\n")
+        Path(args.json).write_text(json.dumps(_nulls(result), indent=2) + "\n")
         print(f"wrote {args.json}")
     if args.plot:
         from facewire.rdplot import plot
@@ -187,6 +184,18 @@ def run(args: argparse.Namespace) -> int:
         plot(result, Path(args.plot))
         print(f"wrote {args.plot}")
     return 0
+
+
+def _nulls(value: Any) -> Any:
+    """``value`` with every nan (a region no frame showed, a rate not reached) as None: the
+    JSON stays standard."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _nulls(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nulls(v) for v in value]
+    return value
 
 
 def _progress(total: int, desc: str) -> Any:

@@ -20,9 +20,11 @@ Point = tuple[float, float]  # (bit rate, quality)
 
 
 def envelope(points: Iterable[Point]) -> list[Point]:
-    """The upper envelope of (rate, quality) points, in increasing rate (nan quality left out)."""
+    """The upper envelope of (rate, quality) points, in increasing rate (a quality that is nan
+    or None, as the JSON writes nan, left out)."""
     best: list[Point] = []
-    for rate, quality in sorted(p for p in points if not math.isnan(p[1]) and p[0] > 0):
+    known = (p for p in points if p[1] is not None and not math.isnan(p[1]) and p[0] > 0)
+    for rate, quality in sorted(known):
         if not best or quality > best[-1][1]:
             if best and best[-1][0] == rate:
                 best.pop()
