@@ -320,8 +320,22 @@ def _blobs_of(
 
 def split_blob(pixels: np.ndarray, weights: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     """Centroids (s, 2) of a blob's pixels (p, 2) split among ``seeds`` (s, 2) by weighted
-    k-means started at the seeds (two markers run into one blob)."""
+    k-means started at the seeds (two markers run into one blob).
+
+    Two seeds start from the blob's own long axis instead (a seed far off, a marker that was
+    hidden, would otherwise take no pixels), and the halves go to the seeds in their order
+    along that axis.
+    """
     centres = np.asarray(seeds, dtype=np.float64).copy()
+    if len(centres) == 2 and weights.sum() > 0:
+        mean = (pixels * weights[:, None]).sum(axis=0) / weights.sum()
+        rel = pixels - mean
+        cov = (rel * weights[:, None]).T @ rel / weights.sum()
+        axis = np.linalg.eigh(cov)[1][:, -1]
+        spread = float(np.sqrt(max(axis @ cov @ axis, 1e-6)))
+        ends = mean + np.outer([-spread, spread], axis)
+        order = np.argsort((centres - mean) @ axis)
+        centres = ends[np.argsort(order)]
     for _ in range(10):
         d = np.linalg.norm(pixels[:, None] - centres[None], axis=2)
         owner = d.argmin(axis=1)

@@ -47,6 +47,7 @@ from sender.marker_colours import (
     Blobs,
     ColourClass,
     MarkerSample,
+    class_mask,
     colour_classes,
     find_blobs,
     sample_marker,
@@ -72,6 +73,10 @@ MARKER_STATUSES = (SEEN, MERGED, HIDDEN)
 
 # Calibration: at least this many pose markers (the pose needs 4 not in a plane to start).
 MIN_POSE_MARKERS = 4
+# A colour class that covers more than this fraction of the face away from the markers is
+# the face's own colour (measured: the bundled clip's classes 0.02 % at most, the skin hue
+# picked up on a face without markers 22 %).
+MAX_CLUTTER = 0.02
 # Calibration window around a marker's expected place, cm of face (min 5 px).
 CALIBRATION_RADIUS_CM = 0.45
 # Colour classes are read again from the markers found over this many frames.
@@ -95,8 +100,9 @@ MERGED_CONFIDENCE = 0.5
 ROI_MARGIN_CM = 2.0
 # Frames lost before the landmark tracker is asked where the face is, and then every so often.
 LANDMARK_RETRY_FRAMES = 10
-LK_WINDOW = (21, 21)
-LK_LEVELS = 3
+LK_WINDOW = (15, 15)
+LK_LEVELS = 2
+LK_MARGIN_CM = 1.5
 LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
 # LK's own error (mean absolute intensity difference) above which its answer is not used.
 LK_MAX_ERROR = 30.0
@@ -208,6 +214,24 @@ class MarkerTracker:
                         di = np.linalg.norm(si.centroid - expected[i])
                         dj = np.linalg.norm(sj.centroid - expected[j])
                         usable[j if dj > di else i] = False
+        # A colour that much of the face itself has (skin, lips, hair) is no marker colour.
+        while any(usable):
+            kept = [s for s, u in zip(found, usable, strict=True) if u and s is not None]
+            classes, group = colour_classes(kept)
+            clutter = face_clutter(frame_bgr, points[:, :2], classes, kept)
+            bad = [c for c, f in enumerate(clutter) if f > MAX_CLUTTER]
+            if not bad:
+                break
+            for c in bad:
+                logger.info(
+                    "colour %s is all over the face (%.1f %%): not a marker colour",
+                    classes[c].label(),
+                    100 * clutter[c],
+                )
+            owners = np.flatnonzero(usable)
+            for i, g in zip(owners.tolist(), group.tolist(), strict=True):
+                if g in bad:
+                    usable[i] = False
         n_pose = sum(usable[i] for i in self.pose_markers)
         if n_pose < MIN_POSE_MARKERS:
             logger.info(
@@ -373,7 +397,7 @@ class MarkerTracker:
             and (self._lost_for % LANDMARK_RETRY_FRAMES == 0)
         ):
             self._place_from_landmarks(frame_bgr)
-        predicted, gates = self._predict(grey)
+        predicted, gates, by_lk, layout_xy, layout_gates = self._predict(grey)
         h, w = grey.shape
         margin = ROI_MARGIN_CM * self.scale
         lo = np.floor(np.maximum(predicted.min(axis=0) - margin, 0)).astype(int)
@@ -392,7 +416,13 @@ class MarkerTracker:
         )
         for c, blobs in enumerate(found):
             members = np.flatnonzero(cal.marker_class == c)
-            self._assign(blobs, members, predicted, gates, xy, status, confidence)
+            taken = self._assign(blobs, members, predicted, gates, xy, status, confidence)
+            # A marker LK took astray gets a second look where the layout puts it.
+            again = np.array([i for i in members.tolist() if status[i] == HIDDEN and by_lk[i]])
+            if len(again):
+                self._assign(
+                    blobs, again, layout_xy, layout_gates, xy, status, confidence, skip=taken
+                )
             if self._frames < CALIBRATION_FRAMES:
                 for i in members.tolist():
                     if status[i] == SEEN:
@@ -444,18 +474,27 @@ class MarkerTracker:
             float(np.median(patch[:, 2])),
         )
 
-    def _predict(self, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where each marker should be in this frame, and its gate (px)."""
+    def _predict(
+        self, grey: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where each marker should be in this frame and its gate (px), which markers LK
+        placed, and where the layout places every marker with its gate (px)."""
         assert self._pose is not None
         k = len(self.names)
         predicted = self._xy.copy()
         by_lk = np.zeros(k, dtype=bool)
         if self._grey is not None and self._grey.shape == grey.shape and self._seen.any():
             idx = np.flatnonzero(self._seen)
-            p0 = self._xy[idx].astype(np.float32).reshape(-1, 1, 2)
+            # LK on the region round the markers only (building the pyramids of the whole
+            # frame was most of its cost): room for a fast head's motion and LK's window.
+            h, w = grey.shape
+            margin = LK_MARGIN_CM * self.scale + LK_WINDOW[0] * 2**LK_LEVELS / 2
+            lo = np.floor(np.maximum(self._xy[idx].min(axis=0) - margin, 0)).astype(int)
+            hi = np.ceil(np.minimum(self._xy[idx].max(axis=0) + margin + 1, [w, h])).astype(int)
+            p0 = (self._xy[idx] - lo).astype(np.float32).reshape(-1, 1, 2)
             p1, ok, err = cv2.calcOpticalFlowPyrLK(
-                self._grey,
-                grey,
+                self._grey[lo[1] : hi[1], lo[0] : hi[0]],
+                grey[lo[1] : hi[1], lo[0] : hi[0]],
                 p0,
                 p0.copy(),
                 winSize=LK_WINDOW,
@@ -463,7 +502,7 @@ class MarkerTracker:
                 criteria=LK_CRITERIA,
             )
             good = (ok.ravel() == 1) & (err.ravel() < LK_MAX_ERROR)
-            predicted[idx[good]] = p1.reshape(-1, 2)[good]
+            predicted[idx[good]] = p1.reshape(-1, 2)[good] + lo
             by_lk[idx[good]] = True
         # The head's motion from the markers LK followed places the others.
         pose = self._pose
@@ -481,18 +520,10 @@ class MarkerTracker:
         layout_xy = pose.apply(self.layout)[:, :2] + self._offset
         predicted[~by_lk] = layout_xy[~by_lk]
         s = pose.scale
-        gates = np.where(
-            by_lk,
-            max(MIN_GATE_PX, LK_GATE_CM * s),
-            np.maximum(
-                MIN_GATE_PX,
-                np.minimum(
-                    LAYOUT_GATE_CM + LAYOUT_GATE_GROWTH_CM * self._hidden_for, LAYOUT_GATE_MAX_CM
-                )
-                * s,
-            ),
-        )
-        return predicted, gates
+        grown = LAYOUT_GATE_CM + LAYOUT_GATE_GROWTH_CM * self._hidden_for
+        layout_gates = np.maximum(MIN_GATE_PX, np.minimum(grown, LAYOUT_GATE_MAX_CM) * s)
+        gates = np.where(by_lk, max(MIN_GATE_PX, LK_GATE_CM * s), layout_gates)
+        return predicted, gates, by_lk, layout_xy, layout_gates
 
     def _assign(
         self,
@@ -503,19 +534,22 @@ class MarkerTracker:
         xy: np.ndarray,
         status: list[str],
         confidence: np.ndarray,
-    ) -> None:
-        """Markers ``members`` of one colour class take blobs (writes xy, status, confidence)."""
+        skip: set[int] | None = None,
+    ) -> set[int]:
+        """Markers ``members`` of one colour class take blobs (writes xy, status, confidence);
+        the blobs in ``skip`` are not offered. Returns the blobs taken."""
         cal = self.calibration
         assert cal is not None
+        skip = skip or set()
         if not len(blobs) or not len(members):
-            return
+            return set()
         cents = list(blobs.centroids)
         areas = list(blobs.areas)
         merged = [False] * len(cents)
         # A blob with room for two or more markers and as many predictions in it is split.
         radius = np.sqrt(cal.area / np.pi)
         for b in range(len(blobs)):
-            if blobs.areas[b] < MERGE_AREA * cal.area:
+            if blobs.areas[b] < MERGE_AREA * cal.area or b in skip:
                 continue
             x0, y0, x1, y1 = blobs.boxes[b]
             p = predicted[members]
@@ -541,18 +575,41 @@ class MarkerTracker:
         c = np.array(cents)
         dist = np.linalg.norm(predicted[members][:, None] - c[None], axis=2)
         cost = (dist / gates[members][:, None]) ** 2
+        cost[:, [b for b in skip if b < len(cost[0])]] = np.inf
         big = 1e6
         rows, cols = linear_sum_assignment(np.where(cost <= 1.0, cost, big))
-        for r, b in zip(rows, cols, strict=True):
+        taken: dict[int, int] = {}  # blob -> the marker that took it
+        for r, b in zip(rows.tolist(), cols.tolist(), strict=True):
             if cost[r, b] > 1.0:
                 continue
-            i = members[r]
+            i = int(members[r])
+            taken[b] = i
             xy[i] = c[b]
             ratio = areas[b] / cal.area
             quality = float(np.clip(min(ratio, 1.0 / max(ratio, 1e-6)), 0.0, 1.0)) ** 0.5
             agree = 1.0 - 0.5 * float(cost[r, b])
             confidence[i] = quality * agree * (MERGED_CONFIDENCE if merged[b] else 1.0)
             status[i] = MERGED if merged[b] else SEEN
+        # A marker left without a blob shares one big enough for two that a single marker
+        # took, if it is within its gate (the lids in a blink, one of them hidden before).
+        for i in members.tolist():
+            if status[i] != HIDDEN:
+                continue
+            for b, j in taken.items():
+                if b >= len(blobs) or merged[b] or blobs.areas[b] < MERGE_AREA * cal.area:
+                    continue
+                if np.linalg.norm(predicted[i] - c[b]) > gates[i]:
+                    continue
+                pixels, weights = blobs.pixels(b)
+                parts = split_blob(pixels, weights, np.array([predicted[j], predicted[i]]))
+                quality = float(np.clip(blobs.areas[b] / (2 * cal.area), 0.0, 1.0)) ** 0.5
+                for marker, part in ((j, parts[0]), (i, parts[1])):
+                    xy[marker] = part
+                    status[marker] = MERGED
+                    confidence[marker] = quality * MERGED_CONFIDENCE
+                merged[b] = True
+                break
+        return {b for b in taken if b < len(blobs)}
 
     def _fit_pose(
         self, xy: np.ndarray, confidence: np.ndarray, seen: np.ndarray, status: list[str]
@@ -602,6 +659,33 @@ class MarkerTracker:
         self._offset[:] = 0.0
         self._seen[:] = False
         logger.debug("markers lost for %d frames: placed on the face found again", self._lost_for)
+
+
+def face_clutter(
+    frame_bgr: np.ndarray,
+    outline_xy: np.ndarray,
+    classes: list[ColourClass],
+    samples: list[MarkerSample],
+) -> list[float]:
+    """Per class, the fraction of the face (hull of ``outline_xy`` (n, 2) px) that has the
+    class's colour, away from the sampled markers (twice their radius round each)."""
+    h, w = frame_bgr.shape[:2]
+    lo = np.clip(np.floor(outline_xy.min(axis=0)).astype(int), 0, [w, h])
+    hi = np.clip(np.ceil(outline_xy.max(axis=0)).astype(int) + 1, 0, [w, h])
+    if (hi - lo < 2).any():
+        return [0.0] * len(classes)
+    face = np.zeros((hi[1] - lo[1], hi[0] - lo[0]), np.uint8)
+    hull = cv2.convexHull((outline_xy - lo).astype(np.float32)).astype(np.int32)
+    cv2.fillConvexPoly(face, hull, 255)
+    for s in samples:
+        r = int(np.ceil(2 * np.sqrt(s.area / np.pi))) + 1
+        c = np.round(s.centroid - lo).astype(int)
+        cv2.circle(face, (int(c[0]), int(c[1])), r, 0, -1)
+    area = max(int(np.count_nonzero(face)), 1)
+    hsv = cv2.cvtColor(frame_bgr[lo[1] : hi[1], lo[0] : hi[0]], cv2.COLOR_BGR2HSV)
+    return [
+        float(np.count_nonzero(cv2.bitwise_and(class_mask(hsv, c), face))) / area for c in classes
+    ]
 
 
 def lift_points(mesh: FaceMesh, pose: Pose, xy: np.ndarray, fallback: np.ndarray) -> np.ndarray:
