@@ -43,6 +43,13 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="read the file as fast as possible instead of at its frame rate",
     )
+    p.add_argument(
+        "--tracker",
+        choices=("landmarks", "markers"),
+        default="landmarks",
+        help="landmarks (markerless, the default) or markers (coloured stickers at the rig's "
+        "markers, lifted onto the face by ray casting: see the README)",
+    )
 
     def run(args: argparse.Namespace) -> int:
         from facewire.demo import run_demo

@@ -31,6 +31,8 @@ from receiver.recorder import Mp4Recorder, crop_to
 from sender.audio import sound_for, with_sound
 from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
+from sender.lift import MarkerFaceTracker
+from sender.markers import NO_MARKERS
 from sender.session import run_sender, wait_until_ready
 
 logger = logging.getLogger(__name__)
@@ -95,7 +97,9 @@ def run_demo(args: argparse.Namespace) -> int:
 def _call(
     video: VideoSource, args: argparse.Namespace, sent: Path | None, tmp: Path
 ) -> dict[str, Any]:
-    encoder = FaceEncoder(video.width, video.height, video.fps)
+    markers = getattr(args, "tracker", "landmarks") == "markers"
+    tracker = MarkerFaceTracker() if markers else None
+    encoder = FaceEncoder(video.width, video.height, video.fps, tracker=tracker)
     frames = video.frames(limit=args.frames)
     buffered = []
     snapshot = None
@@ -105,6 +109,11 @@ def _call(
         if snapshot is not None:
             break
     if snapshot is None:
+        if tracker is not None and tracker.state == NO_MARKERS:
+            raise CaptureError(
+                f"a face but no markers on it in the first {len(buffered)} frames of "
+                f"{video.name} (--tracker markers: see the README for where they go)"
+            )
         raise CaptureError(f"no face found in the first {len(buffered)} frames of {video.name}")
 
     ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
@@ -181,8 +190,16 @@ def _call(
         "malformed": report["malformed"],
         "ended_by": report["ended_by"],
         "audio": report.get("audio", {}),
+        "rem": _rem_stats(encoder, report),
         "output": str(args.output),
     }
+
+
+def _rem_stats(encoder: FaceEncoder, report: dict[str, Any]) -> dict[str, Any]:
+    """REM patches: the sender's counts (images, references, repeats, bytes per region) and
+    the receiver's (received, applied per region, dropped per reason)."""
+    sent = encoder.rem.counts.as_dict() if encoder.rem is not None else {"patches": 0}
+    return {"patches": sent["patches"], "sender": sent, "receiver": report.get("rem", {})}
 
 
 def _by_size(sizes: Mapping[str, Counter[int]]) -> dict[str, list[list[int]]]:
@@ -234,6 +251,18 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
         f"kbit/s: geometry {k['geometry']:.1f}  rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
         f"control {k['control']:.2f}  audio {k['audio']:.1f}  total {k['total']:.1f}"
     )
+    rem = stats.get("rem") or {}
+    if rem.get("patches"):
+        sent, got = rem["sender"], rem.get("receiver", {})
+        regions = sorted({*sent["images"], *sent["references"]})
+        each = ", ".join(
+            f"{r} {sent['images'].get(r, 0)}+{sent['references'].get(r, 0)}" for r in regions
+        )
+        print(
+            f"rem: {rem['patches']} patches (images+references: {each}), "
+            f"{sum(got.get('applied', {}).values())} applied, "
+            f"{sum(got.get('dropped', {}).values())} dropped"
+        )
     sound = stats.get("audio") or {}
     if sound.get("packets"):
         off = sound["av_offset_ms"]

@@ -5,6 +5,8 @@ canonical mesh's vertex order (x, y in input pixels, z relative depth in the sam
 scale, away from the camera), the model's face-presence score, the head pose and what the
 tracker made of the frame (``state``), or an empty list and a null pose when there is no
 face. Landmarks of a video are smoothed over time (One Euro filter) unless ``--no-smooth``.
+With ``--tracker markers`` a frame gives the rig's coloured markers instead (name, x, y,
+confidence, status), and the pose fitted to its pose markers.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ from models.rig import load_rig
 from receiver.recorder import Mp4Recorder
 from sender.capture import CaptureError, VideoSource
 from sender.landmarks import ACQUIRED, STATES, TRACKED, Landmarks, LandmarkTracker
+from sender.markers import HIDDEN, MERGED, Markers, MarkerTracker
+from sender.markers import STATES as MARKER_STATES
 from sender.smoothing import LandmarkSmoother
 
 logger = logging.getLogger(__name__)
@@ -39,6 +43,8 @@ IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff", ".p
 AXIS_CM = 4.0
 NOSE_TIP = 1
 STATE_COLOURS = {ACQUIRED: (0, 200, 255), TRACKED: (0, 220, 0)}
+ROLE_COLOURS = {"pose": (0, 200, 0), "deform": (230, 80, 0), "mouth": (0, 0, 230)}  # BGR
+TRACKERS = ("landmarks", "markers")
 # A still image is looked at again on the crop made from its own landmarks, twice: on the
 # annotated photos of BENCHMARKS.md this took the inner-face error from 0.070 to 0.058 of
 # the inter-ocular distance (the detector's crop is coarser than the tracker's own).
@@ -61,6 +67,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--frames", type=int, metavar="N", help="track at most N frames")
     p.add_argument("--no-smooth", action="store_true", help="raw landmarks, no smoothing over time")
+    p.add_argument(
+        "--tracker",
+        choices=TRACKERS,
+        default="landmarks",
+        help="landmarks (markerless, the default) or markers (coloured stickers at the rig's "
+        "markers: see the README)",
+    )
 
     def run(args: argparse.Namespace) -> int:
         return run_track(args)
@@ -157,8 +170,39 @@ def frame_json(index: int, state: str, lm: Landmarks | None, pose: Pose | None) 
     }
 
 
-def draw(image: np.ndarray, state: str, lm: Landmarks | None, pose: Pose | None) -> np.ndarray:
-    """A copy of ``image`` with the landmarks, the pose axes and the state written on it."""
+def marker_frame_json(index: int, state: str, found: Markers | None) -> dict[str, Any]:
+    """A frame's record for the marker tracker: every marker with its confidence."""
+    markers = []
+    if found is not None:
+        for i, name in enumerate(found.names):
+            markers.append(
+                {
+                    "name": name,
+                    "role": found.roles[i],
+                    "x": round(float(found.xy[i, 0]), DECIMALS),
+                    "y": round(float(found.xy[i, 1]), DECIMALS),
+                    "confidence": round(float(found.confidence[i]), 3),
+                    "status": found.status[i],
+                }
+            )
+    return {
+        "index": index,
+        "state": state,
+        "markers": markers,
+        "confidence": 0.0 if found is None else round(float(found.confidence.mean()), 4),
+        "pose": None if found is None else pose_json(found.pose),
+    }
+
+
+def draw(
+    image: np.ndarray,
+    state: str,
+    lm: Landmarks | None,
+    pose: Pose | None,
+    markers: Markers | None = None,
+) -> np.ndarray:
+    """A copy of ``image`` with the landmarks (or markers: a ring round each seen one, a
+    cross where a hidden one is expected), the pose axes and the state written on it."""
     out = image.copy()
     h, w = out.shape[:2]
     unit = max(1, round(max(h, w) / 640))
@@ -167,6 +211,15 @@ def draw(image: np.ndarray, state: str, lm: Landmarks | None, pose: Pose | None)
         colour = STATE_COLOURS.get(state, (255, 255, 255))
         for x, y in np.round(lm.points[:, :2]).astype(int):
             cv2.circle(out, (int(x), int(y)), dot, colour, -1, cv2.LINE_AA)
+    if markers is not None:
+        for (x, y), role, status in zip(markers.xy, markers.roles, markers.status, strict=True):
+            c = (int(round(x)), int(round(y)))
+            colour = ROLE_COLOURS.get(role, (255, 255, 255))
+            if status == HIDDEN:
+                cv2.drawMarker(out, c, colour, cv2.MARKER_TILTED_CROSS, 8 * unit, unit)
+            else:
+                ring = (255, 255, 255) if status == MERGED else (0, 0, 0)
+                cv2.circle(out, c, 6 * unit, ring, unit, cv2.LINE_AA)
     if pose is not None:
         canonical = load_canonical().vertices
         base = canonical[NOSE_TIP]
@@ -240,6 +293,21 @@ def track_still(tracker: LandmarkTracker, image: np.ndarray) -> Landmarks | None
     return lm
 
 
+def track_markers(
+    src: TrackInput, limit: int | None = None, drawing: _Drawing | None = None
+) -> list[dict[str, Any]]:
+    """The marker tracker over every frame of ``src``; the per-frame records."""
+    tracker = MarkerTracker()
+    records = []
+    for index, image in src.frames(limit):
+        found = tracker.track(image)
+        records.append(marker_frame_json(index, tracker.state, found))
+        if drawing is not None:
+            pose = None if found is None else found.pose
+            drawing.write(draw(image, tracker.state, None, pose, found))
+    return records
+
+
 def track_frames(
     src: TrackInput, limit: int | None = None, smooth: bool = True, drawing: _Drawing | None = None
 ) -> list[dict[str, Any]]:
@@ -267,8 +335,12 @@ def run_track(args: argparse.Namespace) -> int:
         raise OSError(f"cannot write {out}: folder {out.parent} does not exist")
     src = TrackInput(args.input)
     drawing = _Drawing(Path(args.draw), src) if args.draw else None
+    markers = getattr(args, "tracker", "landmarks") == "markers"
     try:
-        frames = track_frames(src, args.frames, not args.no_smooth, drawing)
+        if markers:
+            frames = track_markers(src, args.frames, drawing)
+        else:
+            frames = track_frames(src, args.frames, not args.no_smooth, drawing)
     finally:
         src.close()
         if drawing is not None:
@@ -278,12 +350,17 @@ def run_track(args: argparse.Namespace) -> int:
         "width": src.width,
         "height": src.height,
         "fps": src.fps,
-        "smoothed": bool(src.fps) and not args.no_smooth,
+        "smoothed": bool(src.fps) and not args.no_smooth and not markers,
         "frames": frames,
     }
+    if markers:
+        doc["tracker"] = "markers"
     out.write_text(json.dumps(doc, separators=(",", ":")) + "\n")
-    counts = {s: sum(f["state"] == s for f in frames) for s in STATES}
+    counts = {
+        s: sum(f["state"] == s for f in frames) for s in (MARKER_STATES if markers else STATES)
+    }
     with_face = counts[ACQUIRED] + counts[TRACKED]
     detail = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
-    print(f"track: {len(frames)} frames, {with_face} with a face ({detail}); wrote {out}")
+    what = "markers" if markers else "a face"
+    print(f"track: {len(frames)} frames, {with_face} with {what} ({detail}); wrote {out}")
     return 0
