@@ -89,7 +89,9 @@ class LipRig:
 
 @dataclass(frozen=True)
 class RemRegion:
-    """A region effective for merging: a closed vertex loop ("spectacles" lens)."""
+    """A region effective for merging: a closed vertex loop around an eye (its lids and one
+    ring of skin beyond them: where ``facewire rem-map`` finds texture change outweighing
+    shape change; seed 003's "spectacles" reached up over the brows, which the wires move)."""
 
     name: str
     polygon: tuple[int, ...]

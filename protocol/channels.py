@@ -175,9 +175,16 @@ class ChannelEncoder(_Codec):
         return out
 
     def encode(
-        self, seq: int, capture_us: int, values: Mapping[str, NDArray[np.integer]]
+        self,
+        seq: int,
+        capture_us: int,
+        values: Mapping[str, NDArray[np.integer]],
+        force: bool = False,
     ) -> tuple[KeyFrame | DeltaFrame | None, FrameValues]:
         """The packet for frame ``seq`` (None: nothing changed) and what the receiver rebuilds.
+
+        With ``force`` there is a packet even when nothing changed (the frame has to be
+        drawn: a REM patch goes with it).
 
         Frame numbers must increase (up to 2^32 - 1). The capture time the receiver rebuilds
         is rounded to the millisecond against its prediction from the previous frame; one
@@ -196,7 +203,7 @@ class ChannelEncoder(_Codec):
             return self._keyframe(seq, capture_us, vals)
         step = seq - last.seq
         residuals = {n: vals[n] - last.values[n] for n in vals}
-        if step < MAX_SEQ_STEP and not any(r.any() for r in residuals.values()):
+        if step < MAX_SEQ_STEP and not force and not any(r.any() for r in residuals.values()):
             return None, FrameValues(seq, last.capture_us + step * self.frame_us, last.values)
         predicted = last.capture_us + step * self.frame_us
         residual_ms = round((capture_us - predicted) / 1000)

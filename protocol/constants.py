@@ -74,8 +74,15 @@ INT64_MAX: Final = 2**63 - 1
 
 # --- payload formats -----------------------------------------------------------------------------
 
-#: Image codecs accepted for REM patches (a snapshot's images may also be WebP).
-REM_CODECS: Final = ("jpeg", "png")
+#: Image codecs accepted for REM patches (the sender codes them as WebP: a patch of 30 to 200
+#: bytes would be mostly header as a JPEG).
+REM_CODECS: Final = ("jpeg", "png", "webp")
+#: A REM patch's "codec" when it shows an earlier patch of its region again (data: that
+#: patch's frame number).
+REM_REFERENCE: Final = "ref"
+#: Images of each REM region both ends hold besides the snapshot's texture (a reference may
+#: name one): the newest ones, in the order their patches were sent.
+REM_CACHE: Final = 6
 
 # --- bandwidth accounting channels ---------------------------------------------------------------
 

@@ -51,6 +51,7 @@ from protocol.constants import (
     MIN_FPS,
     PROTOCOL_VERSION,
     REM_CODECS,
+    REM_REFERENCE,
     UINT32_MAX,
     Kind,
 )
@@ -91,6 +92,11 @@ def _float(name: str, value: object, lo: float = -math.inf, hi: float = math.inf
     if not lo <= v <= hi:
         raise PacketError(f"{name}: {v} outside [{lo}, {hi}]")
     return v
+
+
+def _float32(name: str, value: object, lo: float, hi: float) -> float:
+    """:func:`_float`, rounded to the nearest float32 (as it travels)."""
+    return float(np.float32(_float(name, value, lo, hi)))
 
 
 def _str(name: str, value: object, allow_empty: bool = False) -> str:
@@ -520,11 +526,15 @@ class AudioFrame(_Packet):
 class RemPatch(_Packet):
     """A region-effective-for-merging patch (e.g. the eyes) in texture (UV) space.
 
+    seq : the frame it belongs to (drawn with that frame)
     region : REM region name (models.rem.REGION_NAMES)
-    codec : "jpeg", "png" or "webp"; data : the encoded image (header valid, within
-    MAX_IMAGE_SIDE)
+    codec : "jpeg", "png" or "webp", data the encoded image (header valid, within
+        MAX_IMAGE_SIDE); or "ref", data 4 bytes: the uint32 (little-endian, at most ``seq``)
+        frame number of an earlier patch of the region whose image to show again (the
+        snapshot's own frame number: the snapshot's texture), see :attr:`reference`
     h_peak : hue histogram peak, degrees [0, 360]; s_mean, v_mean : mean saturation and value
-    in [0, 1] (HSV colour adaptation, seed 003 Eq. 2)
+        in [0, 1] (HSV colour adaptation, seed 003 Eq. 2; s_mean or v_mean 0: none measured).
+        They travel as float32 and are rounded to float32 when the packet is made.
     """
 
     KIND: ClassVar[Kind] = Kind.REM_PATCH
@@ -543,15 +553,42 @@ class RemPatch(_Packet):
         _set(self, "seq", _int("RemPatch.seq", self.seq, 0, UINT32_MAX))
         _set(self, "region", _str("RemPatch.region", self.region))
         codec = _str("RemPatch.codec", self.codec)
-        if codec not in REM_CODECS:
-            raise PacketError(f"RemPatch.codec: unknown codec {codec!r} (known: {REM_CODECS})")
-        data = _image("RemPatch.data", self.data, codec)
-        if not data:
-            raise PacketError("RemPatch.data: must not be empty")
+        if codec == REM_REFERENCE:
+            data = _bytes("RemPatch.data", self.data)
+            if len(data) != 4:
+                raise PacketError(f"RemPatch.data: a reference is 4 bytes, got {len(data)}")
+            if struct.unpack("<I", data)[0] > self.seq:
+                raise PacketError("RemPatch.data: a reference to a later frame than its own")
+        elif codec in REM_CODECS:
+            data = _image("RemPatch.data", self.data, codec)
+            if not data:
+                raise PacketError("RemPatch.data: must not be empty")
+        else:
+            known = (*REM_CODECS, REM_REFERENCE)
+            raise PacketError(f"RemPatch.codec: unknown codec {codec!r} (known: {known})")
         _set(self, "data", data)
-        _set(self, "h_peak", _float("RemPatch.h_peak", self.h_peak, 0.0, 360.0))
-        _set(self, "s_mean", _float("RemPatch.s_mean", self.s_mean, 0.0, 1.0))
-        _set(self, "v_mean", _float("RemPatch.v_mean", self.v_mean, 0.0, 1.0))
+        _set(self, "h_peak", _float32("RemPatch.h_peak", self.h_peak, 0.0, 360.0))
+        _set(self, "s_mean", _float32("RemPatch.s_mean", self.s_mean, 0.0, 1.0))
+        _set(self, "v_mean", _float32("RemPatch.v_mean", self.v_mean, 0.0, 1.0))
+
+    @classmethod
+    def referring(
+        cls, seq: int, region: str, key: int, h_peak: float, s_mean: float, v_mean: float
+    ) -> RemPatch:
+        """A patch that shows region's image of the patch of frame ``key`` again."""
+        return cls(seq, region, REM_REFERENCE, struct.pack("<I", key), h_peak, s_mean, v_mean)
+
+    @property
+    def reference(self) -> int | None:
+        """The frame number a "ref" patch refers to (None for an image)."""
+        if self.codec != REM_REFERENCE:
+            return None
+        return int(struct.unpack("<I", self.data)[0])
+
+    def _body(self) -> bytes:
+        # The colour figures need no more than float32 (5 bytes each instead of 9).
+        data: bytes = msgpack.packb(self._to_fields(), use_bin_type=True, use_single_float=True)
+        return data
 
 
 @dataclass(frozen=True, eq=False)

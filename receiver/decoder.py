@@ -28,12 +28,14 @@ from models.face_channels import (
 from models.mesh import load_canonical
 from models.person import person_mask
 from models.pose import Pose
+from models.rem import RemLayout
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from protocol.images import ImageError, decode_image
-from protocol.packets import DeltaFrame, KeyFrame, PacketError, Snapshot
+from protocol.packets import DeltaFrame, KeyFrame, PacketError, RemPatch, Snapshot
 from protocol.quant import dequantise
+from receiver.rem import RemMerger
 from receiver.surround import SurroundWarp
 
 logger = logging.getLogger(__name__)
@@ -121,13 +123,18 @@ class FaceDecoder:
             at_snapshot = self._drawable(reference)
         except PacketError as exc:
             raise SnapshotError(f"snapshot reference: {exc}") from None
+        #: Live patches of the eyes and the mouth's inside (None: the sender sends none).
+        self.rem = self._rem(snapshot)
+        #: REM patches that came without a session able to take them.
+        self.rem_dropped = 0
+        layout = self.rem.layout if self.rem is not None else None
         from receiver.render import FaceRenderer  # OpenGL only where it is needed
 
         self.renderer = FaceRenderer(
             snapshot.width,
             snapshot.height,
-            self.mesh.triangles,
-            self.mesh.uvs,
+            self.mesh.triangles if layout is None else layout.triangles,
+            self.mesh.uvs if layout is None else layout.uvs,
             self.texture,
             self.background,
         )
@@ -138,7 +145,53 @@ class FaceDecoder:
             self.background, at_snapshot[self._outline, :2], person_mask(self.background)
         )
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
-        self.renderer.render(at_snapshot)
+        self.renderer.render(self._drawn(at_snapshot))
+
+    def _rem(self, snapshot: Snapshot) -> RemMerger | None:
+        """The REM merger of a snapshot whose meta names a patch grid ("rem_patch_size"),
+        or None (no REM: the sender sends no patches, or its grid does not fit the texture)."""
+        patch_size = snapshot.meta.get("rem_patch_size")
+        if patch_size is None:
+            return None
+        side = self.texture.shape[0]
+        try:
+            if not isinstance(patch_size, int) or self.texture.shape[1] != side:
+                raise ValueError(f"patch grid {patch_size!r} for a {self.texture.shape} texture")
+            layout = RemLayout(self.mesh.triangles, self.mesh.uvs, self.rig, side, patch_size)
+        except ValueError as exc:
+            logger.warning("no REM patches in this session: %s", exc)
+            return None
+        return RemMerger(layout, self.texture, snapshot.seq)
+
+    def add_patch(self, packet: RemPatch) -> bool:
+        """Keep a REM patch for the frame it belongs to (drawn by :meth:`reconstruct`);
+        False, and counted, when it cannot be used (see :class:`receiver.rem.RemMerger`)."""
+        if self.rem is None:
+            self.rem_dropped += 1
+            return False
+        return self.rem.add(packet)
+
+    def offer(self, packet: object) -> bool:
+        """True when ``packet`` is a REM patch, now kept (or counted and dropped): the
+        receive loop hands every update here first."""
+        if not isinstance(packet, RemPatch):
+            return False
+        self.add_patch(packet)
+        return True
+
+    def rem_counts(self) -> dict[str, object]:
+        """REM patches received, applied by region and dropped by reason."""
+        if self.rem is None:
+            return {
+                "received": self.rem_dropped,
+                "applied": {},
+                "dropped": {"no REM": self.rem_dropped},
+            }
+        return self.rem.counts()
+
+    def _drawn(self, vertices: np.ndarray) -> np.ndarray:
+        """The renderer's vertices from the face's (the mouth's inside has its own)."""
+        return vertices if self.rem is None else self.rem.layout.vertices(vertices)
 
     def decode(self, packet: KeyFrame | DeltaFrame) -> FrameValues:
         """Channel values of a frame packet that gives a face to draw.
@@ -186,7 +239,10 @@ class FaceDecoder:
 
     def reconstruct(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR rendering of one frame's values: the face over the snapshot
-        frame, whose surroundings of the head are moved along with the face."""
+        frame, whose surroundings of the head are moved along with the face, with the REM
+        patches of frames up to this one in its texture."""
+        if self.rem is not None and self.rem.due(values.seq):
+            self.renderer.set_texture(self.rem.texture)
         pose, params = self.parameters(values)
         return self.draw(pose, params, self.camera(values))
 
@@ -200,7 +256,7 @@ class FaceDecoder:
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))
-        image, _ = self.renderer.render(vertices, background, feather)
+        image, _ = self.renderer.render(self._drawn(vertices), background, feather)
         return image
 
     def close(self) -> None:

@@ -74,6 +74,8 @@ class ReceiverReport:
     # network's jitter; the values themselves mean something only where the ends share a clock.
     arrival_ms: list[float] = field(default_factory=list)
     shown: list[tuple[int, int]] = field(default_factory=list)
+    # REM patches: received, applied (by region) and dropped (by reason), all sessions.
+    rem: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
@@ -100,6 +102,7 @@ class ReceiverReport:
             "bytes_sent": dict(self.bytes_sent),
             "ended_by": self.ended_by,
             "keyframe_interval": self.keyframe_interval,
+            "rem": dict(self.rem),
             "playout": {
                 "mode": self.playout,
                 "display_fps": self.display_fps,
@@ -331,7 +334,9 @@ def _receive_session(
             try:
                 packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(now_us()) / 1e6))
                 while packet is not None and not isinstance(packet, Bye):
-                    if isinstance(packet, (KeyFrame, DeltaFrame)):
+                    if decoder.offer(packet):  # a REM patch, drawn with its frame
+                        pass
+                    elif isinstance(packet, (KeyFrame, DeltaFrame)):
                         values = _decode(decoder, packet, report)
                         if values is None:
                             broken = True
@@ -362,7 +367,18 @@ def _receive_session(
             if packet is None and not playout.pending and not endpoint.peer_alive:
                 return "peer lost"
     finally:
+        for key, value in decoder.rem_counts().items():
+            report.rem[key] = _added(report.rem.get(key), value)
         decoder.close()
+
+
+def _added(a: Any, b: Any) -> Any:
+    """Counts of two sessions added (numbers, or dicts of numbers)."""
+    if a is None:
+        return b
+    if isinstance(b, dict):
+        return {k: a.get(k, 0) + b.get(k, 0) for k in {*a, *b}}
+    return a + b
 
 
 def _note_playout(report: ReceiverReport, playout: Playout) -> None:

@@ -196,7 +196,8 @@ class FaceEncoder:
             face = np.ptp(points[:, 0])
             patch_side = min(side, texture_size(face, REM_TEXELS_PER_FACE_PIXEL))
             layout = RemLayout(mesh.triangles, mesh.uvs, self.rig, side, patch_side)
-            self.rem = RemEncoder(layout, texture, self.fps)
+            first = frame.index if seq is None else seq
+            self.rem = RemEncoder(layout, texture, first, self.fps)
             # The mouth's inside gets its own rectangle of texture, as this frame shows it.
             self.rem.fill_atlas(texture, frame.image, points)
             texture_webp = _webp(texture, TEXTURE_QUALITY)
@@ -307,13 +308,24 @@ class FaceEncoder:
         patches, self._patches = self._patches, []
         return patches
 
-    def rebuilt_vertices(self, values: dict[str, np.ndarray]) -> np.ndarray:
-        """(n, 3) the face as the receiver rebuilds quantised channel ``values``, image
-        space (pixels)."""
+    def rebuilt(self, values: dict[str, np.ndarray]) -> tuple[Pose, np.ndarray]:
+        """The head pose and the (n, 3) deformed face in model space (cm) that the receiver
+        rebuilds from quantised channel ``values``."""
         assert self.wires is not None, "start() first"
         floats = {name: dequantise(v, self.steps[name]) for name, v in values.items()}
         params = self.rest_params + self.basis.params(floats[WIRE])
-        return pose_from_channels(floats).apply(self.wires.deform(params))
+        return pose_from_channels(floats), self.wires.deform(params)
+
+    def rebuilt_vertices(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """(n, 3) the face as the receiver rebuilds quantised channel ``values``, image
+        space (pixels)."""
+        pose, model = self.rebuilt(values)
+        return pose.apply(model)
+
+    @property
+    def values(self) -> dict[str, np.ndarray] | None:
+        """The quantised channel values of the last frame encoded (None before start)."""
+        return self._last_values
 
     def encode(self, frame: CapturedFrame) -> KeyFrame | DeltaFrame | None:
         """The packet for ``frame`` (``seq`` = frame index), or None when nothing changed."""

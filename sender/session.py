@@ -12,7 +12,15 @@ from dataclasses import dataclass, field
 import cv2
 
 from protocol.clock import now_us
-from protocol.packets import Bye, DeltaFrame, KeyFrame, KeyframeRequest, ReceiverStats, Snapshot
+from protocol.packets import (
+    Bye,
+    DeltaFrame,
+    KeyFrame,
+    KeyframeRequest,
+    ReceiverStats,
+    RemPatch,
+    Snapshot,
+)
 from protocol.transport import SenderEndpoint, TransportError
 from sender.capture import CapturedFrame, CaptureError
 from sender.encoder import FaceEncoder
@@ -20,6 +28,8 @@ from sender.encoder import FaceEncoder
 logger = logging.getLogger(__name__)
 
 FramePacket = KeyFrame | DeltaFrame
+#: What the sender publishes per frame: its REM patches, then its frame packet.
+UpdatePacket = KeyFrame | DeltaFrame | RemPatch
 
 
 @dataclass
@@ -28,6 +38,7 @@ class SenderReport:
 
     frames_in: int = 0
     packets: int = 0  # frame packets handed to the link (no packet: nothing changed)
+    patches: int = 0  # REM patches handed to the link
     keyframe_requests: int = 0
     busy_s: float = 0.0  # own processing time: track + encode + publish
     receiver_stats: dict[str, float] = field(default_factory=dict)  # the latest of each name
@@ -46,7 +57,7 @@ def run_sender(
     endpoint: SenderEndpoint,
     encoder: FaceEncoder,
     frames: Iterable[CapturedFrame],
-    publish: Callable[[FramePacket], None] | None = None,
+    publish: Callable[[UpdatePacket], None] | None = None,
     stop: Callable[[], bool] = _never,
     on_stats: Callable[[dict[str, float]], None] | None = None,
 ) -> SenderReport:
@@ -54,8 +65,9 @@ def run_sender(
 
     ``encoder`` has started (its snapshot is set on ``endpoint``). Between frames the back
     channel is read: a KeyframeRequest makes the next packet a keyframe, ReceiverStats are kept
-    in the report. Heartbeats go out when nothing was published for a second. ``publish``
-    replaces ``endpoint.publish`` for frame packets (a test's lossy link). Once ``stop()`` is
+    in the report. Heartbeats go out when nothing was published for a second. A frame's REM
+    patches go out just before its frame packet. ``publish`` replaces ``endpoint.publish``
+    for both (a test's lossy link). Once ``stop()`` is
     True (looked at before each frame) the call ends the same way, with a Bye. ``on_stats``
     sees each ReceiverStats as it comes (a receiver says "ready" when it joins, "left" when
     it goes).
@@ -69,6 +81,12 @@ def run_sender(
         _read_back_channel(endpoint, encoder, report, on_stats)
         start = time.perf_counter()
         packet = encoder.encode(frame)
+        for patch in encoder.take_patches():
+            if publish is None:
+                endpoint.publish(patch)
+            else:
+                publish(patch)
+            report.patches += 1
         if packet is not None:  # None: nothing visible changed since the last packet
             if publish is None:  # with the frame number for heartbeats (a delta has none)
                 endpoint.publish(packet, seq=frame.index)

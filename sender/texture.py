@@ -206,6 +206,17 @@ class UvRasteriser:
             100.0 * self.covered.mean(),
         )
 
+    @property
+    def covered_index(self) -> np.ndarray:
+        """(k,) flat indices (row * size + column) of the covered texels, in raster order:
+        the order of :meth:`texel_positions`' rows."""
+        return self._flat_index
+
+    @property
+    def covered_triangle(self) -> np.ndarray:
+        """(k,) the triangle under each covered texel, in the same order."""
+        return self._flat_tri
+
     def texel_positions(self, image_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Image-space point of each covered texel.
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from protocol.clock import now_us
 from protocol.keys import write_keypair
-from protocol.packets import DeltaFrame, KeyFrame, Snapshot, decode
+from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
 from protocol.transport import SenderEndpoint
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
@@ -55,7 +55,8 @@ class Keys:
 
 @dataclass
 class LossyLink:
-    """Publishes frame packets unless ``drop(seq)`` says the network lost that frame's packet.
+    """Publishes frame packets and REM patches unless ``drop(seq)`` says the network lost
+    that frame's packets.
 
     Every packet is also kept in ``sent`` (with its frame's seq), lost or not, so a test can
     rebuild what a lossless receiver would show.
@@ -72,7 +73,7 @@ class LossyLink:
             self.seq = frame.index
             yield frame
 
-    def __call__(self, packet: KeyFrame | DeltaFrame) -> None:
+    def __call__(self, packet: KeyFrame | DeltaFrame | RemPatch) -> None:
         self.sent.append((self.seq, bytes(packet)))
         if self.drop(self.seq):
             self.lost.append(self.seq)
@@ -213,7 +214,8 @@ def wait_ready(endpoint: SenderEndpoint, receiver: ReceiverProcess) -> None:
 
 
 def reference_frames(snapshot: Snapshot, sent: list[tuple[int, bytes]]) -> dict[int, np.ndarray]:
-    """seq -> the picture a receiver that lost nothing renders for that frame's packet."""
+    """seq -> the picture a receiver that lost nothing renders for that frame's packet (with
+    the REM patches sent up to it)."""
     from receiver.decoder import FaceDecoder
 
     decoder = FaceDecoder(snapshot)
@@ -221,6 +223,9 @@ def reference_frames(snapshot: Snapshot, sent: list[tuple[int, bytes]]) -> dict[
         out = {}
         for seq, data in sent:
             packet = decode(data)
+            if isinstance(packet, RemPatch):
+                assert decoder.add_patch(packet)
+                continue
             assert isinstance(packet, (KeyFrame, DeltaFrame))
             out[seq] = decoder.reconstruct(decoder.decode(packet))
         return out

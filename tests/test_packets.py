@@ -170,6 +170,7 @@ EXAMPLES = {
     ),
     "delta_frame": DeltaFrame(counter=4, body=b"\x12\x34"),
     "rem_patch": RemPatch(101, "eyes", "jpeg", JPEG, 12.5, 0.25, 0.75),
+    "rem_patch_reference": RemPatch.referring(102, "eye_left", 96, 12.5, 0.25, 0.75),
     "keyframe_request": KeyframeRequest(99),
     "heartbeat": Heartbeat(42, 101, 1_700_000_999_000),
     "receiver_stats": ReceiverStats({"fps": 29.97, "latency_ms_p50": 31.0}),
@@ -248,6 +249,11 @@ V1_HEARTBEAT = msgpack.packb([1, 5, 1, 2])
             "RemPatch.data: png image of 16384x16384 pixels, each side must be in [1, 4096]",
         ),
         (pack(3, 1, "eyes", "jpeg", JPEG, 1.0, 1.5, 0.5), "RemPatch.s_mean: 1.5 outside"),
+        (pack(3, 9, "eyes", "ref", b"\x05\x00\x00", 1.0, 0.5, 0.5), "RemPatch.data: a refer"),
+        (
+            pack(3, 9, "eyes", "ref", b"\x0a\x00\x00\x00", 1.0, 0.5, 0.5),
+            "RemPatch.data: a reference to a later frame than its own",
+        ),
         (b"\x25\x93\x01\x05\xd4\x01\x02", "malformed msgpack: 2 exceeds max_ext_len(0)"),
         (b"\x25\x94\x01\x05\x01\xa2\xff\xfe", "malformed msgpack: 'utf-8' codec can't decode"),
     ],
@@ -369,10 +375,9 @@ def test_decode_takes_an_image_exactly_when_its_header_checks(
     cases: list[tuple[type, bytes, bool]] = [
         (Snapshot, snapshot_fields(texture=blob), codec is not None)
     ]
-    if image is not WEBP:  # REM patches are JPEG or PNG
-        named = image_size(image)[0]
-        patch = pack(3, 1, "eyes", named, blob, 1.0, 0.5, 0.5)
-        cases.append((RemPatch, patch, codec == named))
+    named = image_size(image)[0]
+    patch = pack(3, 1, "eyes", named, blob, 1.0, 0.5, 0.5)
+    cases.append((RemPatch, patch, codec == named))
     for kind, data, good in cases:
         if good:
             assert isinstance(decode(data), kind)

@@ -3,7 +3,7 @@
     python tools/render_rig.py [-o docs/rig.png] [--size 1000] [--labels]
 
 Wire curve chains are drawn as thick coloured polylines (one colour per feature), markers as
-discs coloured by role, the four lip rings in shades of red, the REM spectacles as dashed
+discs coloured by role, the four lip rings in shades of red, the REM eye regions as dashed
 outlines. ``--labels`` writes vertex indices for checking the rig by eye.
 """
 
@@ -110,7 +110,7 @@ def _legend(img: np.ndarray, top: int) -> None:
     x += 170
     _dashed_loop(img, np.array([[x, y - 12], [x + 25, y - 12], [x + 25, y + 2], [x, y + 2]],
                                float), REM_COLOUR, 2)  # fmt: skip
-    cv2.putText(img, "REM spectacles", (x + 32, y), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "REM eye regions", (x + 32, y), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(img, "canonical face mesh, frontal orthographic; rig from models/data/rig.json",
                 (20, top + 95), font, 0.45, (90, 90, 90), 1, cv2.LINE_AA)  # fmt: skip
 

@@ -1,0 +1,514 @@
+"""REM patches, sender side: live texture for the eyes and the mouth's inside (seed 003).
+
+Each frame, every region of the session's :class:`~models.rem.RemLayout` is cut from the
+frame and warped into texture space through the mesh *as the receiver rebuilds it* (the
+quantised parameters of this frame): pasted into the texture and drawn with the same mesh, a
+patch puts back the pixels it came from, whatever error the geometry has there.
+
+A region is sent when it changed against what the receiver shows for it: enough of its
+texels moved by more than :data:`CHANGE_LEVEL` of luma (a blink, a glance, the mouth
+opening; :meth:`RemEncoder.change`). The mouth's inside counts only while the mouth is open.
+What it shows now may be an image the receiver already holds: each end keeps the last
+REM_CACHE images of every region and the snapshot's (an eye open again after a blink looks
+as it did before it), and then a 37-byte reference to it goes instead of an image. An image
+is coded as WebP at the best quality of :data:`QUALITIES` that fits its share of the bucket
+(a 30-200 byte patch is mostly header as a JPEG; BENCHMARKS.md "REM patches").
+
+All of it is paid from a token bucket filled at :data:`BUDGET_KBPS`. The region that has
+waited longest goes first, the eyes with a head start of :data:`EYE_HEAD_START` frames (a
+blink lasts a few frames; a talking mouth changes all the time), and the mouth's inside may
+only spend what leaves room for both eyes. Every patch carries the frame's reference skin
+colour (peak hue, mean saturation and value over the eye regions: seed 003 section 2.3),
+which the receiver adapts the whole texture to (Eq. 2).
+
+Keyframes repeat what a lost patch would have brought: a keyframe a receiver asked for (it
+just joined, or lost packets) repeats every region's image, one of the snapshot's as a
+reference; a periodic keyframe repeats the regions sent since the previous keyframe, as an
+image while it has gone out only once, else as a reference.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import scipy.sparse as sp
+
+from models.colour import ColourStats, reference_colour, to_hsv
+from models.rem import EYES, MOUTH_INTERIOR, SENT_REGIONS, RemLayout
+from protocol.constants import REM_CACHE
+from protocol.packets import RemPatch
+from sender.texture import UvRasteriser, fill_invalid
+
+logger = logging.getLogger(__name__)
+
+#: All REM traffic, payload, on average (DESIGN.md: at most 4 kbit/s); kept a little under.
+BUDGET_KBPS = 3.6
+#: Most the bucket holds, in seconds of budget.
+BUCKET_S = 2.5
+#: Seconds of budget in the bucket when the session starts.
+START_S = 0.2
+#: WebP qualities tried, best first; a patch gets the best that fits its share of the bucket.
+QUALITIES = (70, 50, 35)
+#: A texel has changed when its luma moved by more than this (0-255) ...
+CHANGE_LEVEL = 24.0
+#: ... and a region has when this fraction of its (weighted) texels did.
+CHANGE_FRACTION = 0.06
+#: An image the receiver holds stands for the region when it differs on at most this
+#: fraction of the texels.
+SAME_FRACTION = CHANGE_FRACTION / 2
+#: Frames an eye is taken to have waited already: ahead of a mouth that waited less longer.
+EYE_HEAD_START = 15
+#: An eye that changed on this fraction of its texels (a blink, a glance) may spend the
+#: bytes kept for the eyes; a smaller change (the head turning the light on it) may not.
+BIG_CHANGE = 0.12
+#: The mouth's inside is looked at only while it is open: its area on screen at least this
+#: fraction of the mouth's width squared.
+MOUTH_OPEN = 0.03
+#: Bytes a RemPatch adds around its image (header byte, msgpack array, seq, region name,
+#: codec, the image's length and three float32), about.
+PACKET_OVERHEAD = 40
+#: Texels on triangles seen more obliquely than this cosine keep the receiver's content.
+MIN_FACING = 0.15
+
+
+def _luma(bgr: np.ndarray) -> np.ndarray:
+    b = bgr.astype(np.float32)
+    return 0.114 * b[..., 0] + 0.587 * b[..., 1] + 0.299 * b[..., 2]
+
+
+def _smooth(bgr: np.ndarray) -> np.ndarray:
+    """Luma, lightly smoothed (3x3 Gaussian): a sub-texel shift changes edges less."""
+    return cv2.GaussianBlur(_luma(bgr), (3, 3), 0)
+
+
+def encode_webp(image: np.ndarray, quality: int) -> bytes:
+    ok, buf = cv2.imencode(".webp", image, [cv2.IMWRITE_WEBP_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("WebP encoding failed")
+    return buf.tobytes()
+
+
+@dataclass
+class RemCounts:
+    """What the REM sender did over a session."""
+
+    images: dict[str, int] = field(default_factory=dict)  # patches carrying an image
+    references: dict[str, int] = field(default_factory=dict)  # patches naming one held
+    repeats: dict[str, int] = field(default_factory=dict)  # of both, repeats at keyframes
+    bytes: dict[str, int] = field(default_factory=dict)  # patch packet bytes
+    changed_frames: dict[str, int] = field(default_factory=dict)  # frames seen changed
+    waited: int = 0  # region-frames a change waited for the bucket
+
+    def add(self, packet: RemPatch, nbytes: int, repeat: bool) -> None:
+        kind = self.references if packet.reference is not None else self.images
+        name = packet.region
+        kind[name] = kind.get(name, 0) + 1
+        self.bytes[name] = self.bytes.get(name, 0) + nbytes
+        if repeat:
+            self.repeats[name] = self.repeats.get(name, 0) + 1
+
+    @property
+    def patches(self) -> int:
+        return sum(self.images.values()) + sum(self.references.values())
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "patches": self.patches,
+            "images": dict(self.images),
+            "references": dict(self.references),
+            "repeats": dict(self.repeats),
+            "bytes": dict(self.bytes),
+            "changed_frames": dict(self.changed_frames),
+            "waited": self.waited,
+        }
+
+
+@dataclass(eq=False)
+class _Image:
+    """An image of a region that the receiver holds (or will, once its patch arrives)."""
+
+    key: int  # the frame number of the patch that brought it (the snapshot's: the texture)
+    content: np.ndarray  # (h, w, 3) uint8 as cut, before coding
+    luma: np.ndarray  # its luma, smoothed (_smooth) and padded by one texel
+    packet: RemPatch | None  # the patch that brought it (None: the snapshot's texture)
+    sent: int = 1  # times its image went out
+
+
+@dataclass(eq=False)
+class _Region:
+    """One region as the receiver has it."""
+
+    base: _Image  # the snapshot's texture
+    current: _Image  # what it shows
+    held: list[_Image] = field(default_factory=list)  # images it keeps, oldest first
+    waiting: int = 0  # frames it has been changed and not sent
+    dirty: bool = False  # something was sent for it since the last keyframe
+
+    def choices(self) -> list[_Image]:
+        return [self.base, *self.held]
+
+
+def _image(key: int, content: np.ndarray, packet: RemPatch | None, sent: int = 1) -> _Image:
+    padded = cv2.copyMakeBorder(_smooth(content), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
+    return _Image(key, content, padded, packet, sent)
+
+
+class RemEncoder:
+    """Cuts, detects and codes one session's REM patches.
+
+    layout : the session's REM layout (both ends build the same)
+    texture : (T, T, 3) uint8 BGR, the snapshot's texture (what the receiver starts from)
+    first_seq : the snapshot's frame number (how a reference names the snapshot's texture)
+    fps : frames per second of the call (the bucket fills per frame)
+    budget_kbps : REM payload budget; regions : names to send (default: those of
+        models.rem.SENT_REGIONS in the layout)
+    """
+
+    def __init__(
+        self,
+        layout: RemLayout,
+        texture: np.ndarray,
+        first_seq: int,
+        fps: float,
+        budget_kbps: float = BUDGET_KBPS,
+        regions: tuple[str, ...] | None = None,
+    ) -> None:
+        if texture.shape != (layout.size, layout.size, 3):
+            raise ValueError(
+                f"expected a ({layout.size}, {layout.size}, 3) texture, got {texture.shape}"
+            )
+        self.layout = layout
+        if regions is None:
+            regions = tuple(n for n in SENT_REGIONS if n in layout.boxes)
+        self.regions = tuple(regions)
+        self.first_seq = first_seq
+        self.rate = budget_kbps * 1000.0 / 8.0 / fps  # bytes per frame
+        self.capacity = budget_kbps * 1000.0 / 8.0 * BUCKET_S
+        self.tokens = budget_kbps * 1000.0 / 8.0 * START_S
+        rasteriser = UvRasteriser(layout.triangles, layout.uvs, layout.patch_size)
+        self._triangles = layout.triangles
+        self._samplers: dict[str, tuple[sp.csr_matrix, np.ndarray, np.ndarray]] = {}
+        for name in layout.names:
+            box = layout.boxes[name]
+            grid = np.s_[box.y : box.y + box.height, box.x : box.x + box.width]
+            tri = rasteriser.triangle[grid].ravel()
+            bary = rasteriser.bary[grid].reshape(-1, 3).astype(np.float64)
+            covered = np.flatnonzero(tri >= 0)
+            k = len(covered)
+            matrix = sp.csr_matrix(
+                (
+                    bary[covered].ravel(),
+                    (np.repeat(np.arange(k), 3), layout.triangles[tri[covered]].ravel()),
+                ),
+                shape=(k, len(layout.uvs)),
+            )
+            self._samplers[name] = (matrix, covered, tri[covered])
+        self.states: dict[str, _Region] = {}
+        for name in layout.names:
+            base = _image(first_seq, self.from_texture(texture, name), None, sent=0)
+            self.states[name] = _Region(base, base)
+        self._colour_regions = tuple(n for n in EYES if n in layout.boxes)
+        # The snapshot's own reference colour: sent while the frame shows no skin to measure
+        # (the receiver's colours then stay as they are).
+        self.model_colour = self._colour(
+            {
+                n: (s.base.content, np.ones(s.base.content.shape[:2], bool))
+                for n, s in self.states.items()
+            }
+        )
+        self._refresh_all = False
+        self._sizes: dict[str, dict[int, int]] = {}  # region -> WebP quality -> last bytes
+        self.counts = RemCounts()
+        self.colour: ColourStats | None = None  # the last frame's reference colour
+
+    def from_texture(self, texture: np.ndarray, name: str) -> np.ndarray:
+        """Region ``name`` of a (T, T, 3) texture on the patch grid."""
+        box = self.layout.boxes[name]
+        part = texture[box.texture_slices]
+        if box.scale == 1:
+            return np.ascontiguousarray(part)
+        return cv2.resize(part, (box.width, box.height), interpolation=cv2.INTER_AREA)
+
+    # -- cutting --------------------------------------------------------------------------
+
+    def cut(
+        self, image: np.ndarray, vertices: np.ndarray, name: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Region ``name`` of ``image`` in texture space.
+
+        image : (h, w, 3) uint8 BGR frame; vertices : (n, 3) the layout mesh's vertices in
+        that frame's image space (:meth:`RemLayout.vertices` of the face's).
+        returns the patch (box height, box width, 3) uint8 and a (box height, box width)
+        bool mask of the texels seen in this frame (covered and facing the camera); the
+        others hold what the receiver already shows.
+        """
+        box = self.layout.boxes[name]
+        matrix, covered, tri = self._samplers[name]
+        points = matrix @ vertices
+        n = box.width * box.height
+        map_x = np.full(n, -1.0, np.float32)
+        map_y = np.full(n, -1.0, np.float32)
+        map_x[covered] = points[:, 0]
+        map_y[covered] = points[:, 1]
+        patch = cv2.remap(
+            image,
+            map_x.reshape(box.height, box.width),
+            map_y.reshape(box.height, box.width),
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        flat = np.zeros(n, bool)
+        if name == MOUTH_INTERIOR:
+            flat[covered] = True  # its triangles fold flat when it shuts: see _mouth_open
+        else:
+            v = vertices
+            used = np.unique(tri)
+            t = self._triangles[used]
+            normal = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+            length = np.linalg.norm(normal, axis=1)
+            facing = np.zeros(len(self._triangles))
+            facing[used] = -normal[:, 2] / np.where(length > 0, length, 1.0)
+            flat[covered] = facing[tri] > MIN_FACING
+        seen = flat.reshape(box.height, box.width)
+        if name == MOUTH_INTERIOR:
+            # Texels outside the mouth's lens-shaped strip: grown from the strip, cheap to code.
+            patch = fill_invalid(patch, seen)
+        else:
+            patch[~seen] = self.states[name].current.content[~seen]
+        return patch, seen
+
+    def _mouth_open(self, vertices: np.ndarray) -> bool:
+        strip = self._triangles[self.layout.interior_triangles]
+        a, b, c = vertices[strip[:, 0], :2], vertices[strip[:, 1], :2], vertices[strip[:, 2], :2]
+        area = 0.5 * np.abs(np.cross(b - a, c - a)).sum()
+        width = float(np.ptp(vertices[np.unique(strip), 0]))
+        return bool(width > 0 and area >= MOUTH_OPEN * width * width)
+
+    # -- deciding -------------------------------------------------------------------------
+
+    def change(self, name: str, patch: np.ndarray, seen: np.ndarray, against: _Image) -> float:
+        """Fraction of region ``name``'s weighted texels whose luma differs by more than
+        CHANGE_LEVEL from image ``against``, once the two are aligned.
+
+        The geometry's quantisation and the tracker's jitter move the whole cut by up to
+        about a texel, which must not count as a change at every edge: both are smoothed a
+        little, and ``against`` is shifted by the whole texel (of the nine, -1 to 1 in each
+        direction) that matches best. A change of the eye itself (lids, iris, the white of
+        the eye) stays."""
+        weight = self.layout.boxes[name].alpha * seen
+        total = float(weight.sum())
+        if total <= 0:
+            return 0.0
+        ref = against.luma
+        luma = _smooth(patch)
+        h, w = luma.shape
+        best = np.inf
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                d = np.abs(luma - ref[dy : dy + h, dx : dx + w])
+                cost = float((weight * d).sum())
+                if cost < best:
+                    best, moved = cost, d > CHANGE_LEVEL
+        return float((weight * moved).sum()) / total
+
+    def request_refresh(self) -> None:
+        """The next keyframe repeats every region (a receiver asked for one)."""
+        self._refresh_all = True
+
+    def changed(self, seq: int, image: np.ndarray, vertices: np.ndarray) -> list[RemPatch]:
+        """Patches of the regions that changed in frame ``seq`` and that the bucket allows.
+
+        image : (h, w, 3) uint8 BGR; vertices : (n, 3) the face's vertices as the receiver
+        rebuilds this frame, image space (n = the layout's face vertex count).
+        """
+        self.tokens = min(self.capacity, self.tokens + self.rate)
+        ext = self.layout.vertices(vertices)
+        # The eyes are cut for their skin's colour even when they are not sent.
+        wanted = self.regions + tuple(n for n in self._colour_regions if n not in self.regions)
+        cuts = {name: self.cut(image, ext, name) for name in wanted}
+        self.colour = self._colour(cuts)
+        candidates = []
+        for name in self.regions:
+            patch, seen = cuts[name]
+            state = self.states[name]
+            if name == MOUTH_INTERIOR and not self._mouth_open(ext):
+                state.waiting = 0  # hidden: nothing to show
+                continue
+            score = self.change(name, patch, seen, state.current)
+            # Hysteresis: a change waiting for the bucket stays one until it is sent or
+            # has mostly gone again.
+            if score < (SAME_FRACTION if state.waiting else CHANGE_FRACTION):
+                state.waiting = 0
+                continue
+            self.counts.changed_frames[name] = self.counts.changed_frames.get(name, 0) + 1
+            state.waiting += 1
+            head = EYE_HEAD_START if name in EYES else 0
+            weight = float((self.layout.boxes[name].alpha * seen).sum())
+            candidates.append((state.waiting + head, score * weight, name, score))
+        candidates.sort(reverse=True)
+        out: list[RemPatch] = []
+        for i, (_, _, name, score) in enumerate(candidates):
+            big = name in EYES and score >= BIG_CHANGE
+            packet = self._send(seq, name, *cuts[name], len(candidates) - i, big)
+            if packet is None:  # the rest wait their turn behind it
+                self.counts.waited += len(candidates) - i
+                break
+            out.append(packet)
+        return out
+
+    def _send(
+        self, seq: int, name: str, patch: np.ndarray, seen: np.ndarray, sharing: int, big: bool
+    ) -> RemPatch | None:
+        """A reference to an image the receiver holds that matches, else the image coded
+        to fit its share of the bucket; None, nothing spent, when the bucket cannot pay.
+        Only a ``big`` change may spend the bytes kept for the eyes."""
+        state = self.states[name]
+        h, s, v = self._stats()
+        scores = [(self.change(name, patch, seen, img), i) for i, img in enumerate(state.choices())]
+        score, i = min(scores)
+        if score <= SAME_FRACTION and state.choices()[i] is not state.current:
+            held = state.choices()[i]
+            packet = RemPatch.referring(seq, name, held.key, h, s, v)
+            if not self._pay(packet, repeat=False):
+                return None
+            state.current, state.waiting, state.dirty = held, 0, True
+            return packet
+        # A blink or a glance may spend the whole bucket; anything else only what leaves
+        # room for both eyes' next images.
+        reserve = 0.0 if big else self._eye_reserve()
+        available = self.tokens - reserve
+        data, quality = self._coded(name, patch, available / sharing, available)
+        if data is None:
+            return None
+        packet = RemPatch(seq, name, "webp", data, h, s, v)
+        if not self._pay(packet, repeat=False):
+            return None
+        self._hold(state, _image(seq, patch, packet))
+        state.waiting, state.dirty = 0, True
+        logger.debug("REM %s at frame %d: WebP q%d, %d bytes", name, seq, quality, len(data))
+        return packet
+
+    def _eye_reserve(self) -> float:
+        """Bytes kept for both eyes' next images (their last sizes at a middle quality)."""
+        middle = QUALITIES[len(QUALITIES) // 2]
+        return float(
+            sum(
+                self._sizes.get(n, {}).get(middle, 0) + PACKET_OVERHEAD
+                for n in self.regions
+                if n in EYES
+            )
+        )
+
+    def _coded(
+        self, name: str, patch: np.ndarray, share: float, available: float
+    ) -> tuple[bytes | None, int]:
+        """WebP bytes at the best quality whose size fits ``share`` (the lowest if none
+        does); None when it would not fit ``available`` anyway."""
+        sizes = self._sizes.setdefault(name, {})
+        smallest = sizes.get(QUALITIES[-1])
+        if smallest is not None and smallest + PACKET_OVERHEAD > available:
+            return None, 0  # not even the smallest fits: no need to code it to know
+        # Start from the best quality its last sizes say fits, then step down.
+        start = next(
+            (i for i, q in enumerate(QUALITIES) if sizes.get(q, 0) + PACKET_OVERHEAD <= share),
+            len(QUALITIES) - 1,
+        )
+        data = b""
+        quality = QUALITIES[start]
+        for quality in QUALITIES[start:]:
+            data = encode_webp(patch, quality)
+            sizes[quality] = len(data)
+            if len(data) + PACKET_OVERHEAD <= share:
+                break
+        if len(data) + PACKET_OVERHEAD > available:
+            return None, quality
+        return data, quality
+
+    def _pay(self, packet: RemPatch, repeat: bool, owed: bool = False) -> bool:
+        """Take the packet's bytes from the bucket (``owed``: even into debt)."""
+        size = len(bytes(packet))
+        if size > self.tokens and not owed:
+            return False
+        self.tokens -= size
+        self.counts.add(packet, size, repeat)
+        return True
+
+    @staticmethod
+    def _hold(state: _Region, image: _Image) -> None:
+        """The receiver keeps a new image, and forgets its oldest past REM_CACHE."""
+        state.current = image
+        state.held.append(image)
+        del state.held[:-REM_CACHE]
+
+    def keyframe(self, seq: int, fresh: list[RemPatch]) -> list[RemPatch]:
+        """Repeats that go with keyframe ``seq`` (regions in ``fresh``, this frame's own
+        patches, need none).
+
+        A receiver that asked for the keyframe gets every region again, owed: it may leave
+        the bucket in debt, which later patches wait out. A periodic keyframe repeats what
+        was sent since the last one as far as the bucket can pay without the eyes' bytes;
+        the rest waits for the next keyframe."""
+        done = {p.region for p in fresh}
+        h, s, v = self._stats()
+        owed = self._refresh_all
+        out = []
+        for name in self.regions:
+            state = self.states[name]
+            if name in done:
+                state.dirty = False
+                continue
+            if not (owed or state.dirty):
+                continue
+            current = state.current
+            if current is state.base or (current.sent > 1 and not owed):
+                packet = RemPatch.referring(seq, name, current.key, h, s, v)
+            else:
+                old = current.packet
+                assert old is not None
+                packet = RemPatch(seq, name, old.codec, old.data, h, s, v)
+            if not owed and len(bytes(packet)) > self.tokens - self._eye_reserve():
+                continue
+            self._pay(packet, repeat=True, owed=True)
+            if packet.reference is None:
+                self._hold(state, _image(seq, current.content, packet, sent=current.sent + 1))
+            state.dirty = False
+            out.append(packet)
+        self._refresh_all = False
+        return out
+
+    def _colour(self, cuts: dict[str, tuple[np.ndarray, np.ndarray]]) -> ColourStats | None:
+        """The reference skin colour over the eye regions' texels (None without any)."""
+        eyes = self._colour_regions
+        if not eyes:
+            return None
+        hsv = [to_hsv(cuts[n][0]).reshape(-1, 3) for n in eyes]
+        mask = [(self.layout.boxes[n].inside & cuts[n][1]).ravel() for n in eyes]
+        pixels = np.concatenate(hsv)[np.concatenate(mask)]
+        return reference_colour(pixels[:, None, :])
+
+    def _stats(self) -> tuple[float, float, float]:
+        """The colour a patch carries: this frame's, else the snapshot's, else none (0)."""
+        colour = self.colour or self.model_colour
+        if colour is None:
+            return (0.0, 0.0, 0.0)
+        return (colour.h_peak, colour.s_mean, colour.v_mean)
+
+    def fill_atlas(self, texture: np.ndarray, image: np.ndarray, vertices: np.ndarray) -> None:
+        """Write the mouth's inside, as ``image`` shows it, into its rectangle of the
+        snapshot's ``texture`` (in place) and take it as what the receiver starts from.
+
+        vertices : (n, 3) the face's vertices in ``image`` (those the texture was unwrapped
+        with). The face's unwrap leaves the rectangle to its hole filling.
+        """
+        if MOUTH_INTERIOR not in self.states:
+            return
+        patch, _ = self.cut(image, self.layout.vertices(vertices), MOUTH_INTERIOR)
+        box = self.layout.boxes[MOUTH_INTERIOR]
+        rows, cols = box.texture_slices
+        size = (cols.stop - cols.start, rows.stop - rows.start)
+        texture[rows, cols] = cv2.resize(patch, size, interpolation=cv2.INTER_LINEAR)
+        base = _image(self.first_seq, patch, None, sent=0)
+        self.states[MOUTH_INTERIOR] = _Region(base, base)
