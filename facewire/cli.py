@@ -69,12 +69,13 @@ def build_parser() -> argparse.ArgumentParser:
     from facewire import bandwidth
 
     bandwidth.add_parser(sub)
-    from facewire import call, keys, track, wirestool
+    from facewire import call, keys, remmap, track, wirestool
 
     call.add_parsers(sub)
     wirestool.add_parser(sub)
     keys.add_parser(sub)
     track.add_parser(sub)
+    remmap.add_parser(sub)
     return parser
 
 
