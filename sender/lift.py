@@ -13,7 +13,8 @@ control point displacement -> GDE RBFs -> a displacement of every vertex. Here:
    (seed 002's "direct specification" for points off the mesh) at a lower confidence.
 3. The displacement of each deform and mouth marker from its rest point (where the
    calibration frame put it on the mesh) is blended with its last one by confidence: a hidden
-   marker holds, a doubtful one moves part way.
+   marker holds, a doubtful one moves part way; in depth, the surface's confidence counts
+   too (a grazing hit moves the depth less, a point off the mesh keeps its depth).
 4. The rig's GDEs (one per deform/mouth marker, ``models.gde``) spread those displacements
    over the mesh. Overlapping elements (the two lids of an eye, chin and lower lip) would
    add up and miss their own markers, so the control displacements are solved for first,
@@ -132,8 +133,12 @@ class MarkerLifter:
         points = np.where(on_mesh[:, None], hits.points, nearest)
         confidence = markers.confidence * surface
         # A doubtful marker moves part of the way from where it was; a hidden one holds.
-        c = confidence[:, None]
-        shown = c * (points - self.rest) + (1.0 - c) * self.marker_displacement
+        # Across the image its 2D confidence decides; in depth, which only the surface
+        # tells, that times the surface's (a point off the mesh keeps its last depth).
+        step = (points - last) @ pose.rotation.T  # camera axes: x, y in the image, z depth
+        step[:, :2] *= markers.confidence[:, None]
+        step[:, 2] *= confidence
+        shown = self.marker_displacement + step @ pose.rotation
         self.field = self.spread @ shown[self.driving]
         self.marker_displacement = shown
         return MarkerFit(
