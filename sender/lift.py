@@ -48,11 +48,24 @@ logger = logging.getLogger(__name__)
 # Surface confidence: full when the hit faces the camera at least this much (cosine),
 # falling to 0 at the silhouette.
 FULL_FACING = 0.3
-# A hit this far (cm) from the marker's last point is on another part of the face (the ray
-# passed a silhouette): the point is taken off the mesh instead.
+# A hit whose depth moved more than this (cm) plus MAX_SLOPE times its move across the
+# image since the last frame, or that is more than MAX_JUMP_CM from the marker's last point,
+# is on another part of the face: the point is taken off the mesh.
+MIN_DEPTH_STEP_CM = 0.15
+MAX_SLOPE = 3.0
 MAX_JUMP_CM = 1.2
+# Confidence from which a marker is followed all the way, and up to which not at all.
+TRUST_FULL = 0.7
+TRUST_NONE = 0.1
 # Confidence factor of a point off the mesh (its x, y are measured, its depth is a guess).
 OFF_MESH = 0.3
+
+
+def trust(confidence: np.ndarray) -> np.ndarray:
+    """How far a marker of this confidence moves from its last place to its measured one:
+    all the way from ``TRUST_FULL``, not at all up to ``TRUST_NONE``. (Moving part way
+    every frame is a lag: a blink is over in five frames.)"""
+    return np.clip((confidence - TRUST_NONE) / (TRUST_FULL - TRUST_NONE), 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -126,8 +139,16 @@ class MarkerLifter:
         # The point of each ray nearest the marker's last place: used off the mesh.
         along = np.einsum("ij,ij->i", last - origins, directions)
         nearest = origins + along[:, None] * directions
-        jump = np.linalg.norm(np.where(hits.hit[:, None], hits.points, np.inf) - last, axis=1)
-        on_mesh = hits.hit & (jump <= MAX_JUMP_CM)
+        # A hit whose depth jumped more than the surface's slope allows for the step across
+        # the image is on another part of the face (the ray slid past a silhouette, or onto
+        # a lip in front of the mouth's corner).
+        moved = (np.where(hits.hit[:, None], hits.points, last) - last) @ pose.rotation.T
+        across = np.linalg.norm(moved[:, :2], axis=1)
+        on_mesh = (
+            hits.hit
+            & (np.abs(moved[:, 2]) <= MIN_DEPTH_STEP_CM + MAX_SLOPE * across)
+            & (np.linalg.norm(moved, axis=1) <= MAX_JUMP_CM)
+        )
         facing = np.nan_to_num(hits.facing, nan=0.0)
         surface = np.where(on_mesh, np.clip(facing / FULL_FACING, 0.0, 1.0), OFF_MESH)
         points = np.where(on_mesh[:, None], hits.points, nearest)
@@ -136,8 +157,8 @@ class MarkerLifter:
         # Across the image its 2D confidence decides; in depth, which only the surface
         # tells, that times the surface's (a point off the mesh keeps its last depth).
         step = (points - last) @ pose.rotation.T  # camera axes: x, y in the image, z depth
-        step[:, :2] *= markers.confidence[:, None]
-        step[:, 2] *= confidence
+        step[:, :2] *= trust(markers.confidence)[:, None]
+        step[:, 2] *= trust(confidence)
         shown = self.marker_displacement + step @ pose.rotation
         self.field = self.spread @ shown[self.driving]
         self.marker_displacement = shown

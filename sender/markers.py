@@ -95,7 +95,7 @@ MERGE_AREA = 1.4
 # A marker's centroid is taken within this many of its radii of the blob's centre.
 REACH = 1.6
 # Confidence of a marker sharing a blob.
-MERGED_CONFIDENCE = 0.5
+MERGED_CONFIDENCE = 0.9
 # Region searched for blobs: the predictions' box grown by this much (cm).
 ROI_MARGIN_CM = 2.0
 # Frames lost before the landmark tracker is asked where the face is, and then every so often.
@@ -587,7 +587,7 @@ class MarkerTracker:
             xy[i] = c[b]
             ratio = areas[b] / cal.area
             quality = float(np.clip(min(ratio, 1.0 / max(ratio, 1e-6)), 0.0, 1.0)) ** 0.5
-            agree = 1.0 - 0.5 * float(cost[r, b])
+            agree = 1.0 - 0.2 * float(cost[r, b])  # a blob at the edge of its gate
             confidence[i] = quality * agree * (MERGED_CONFIDENCE if merged[b] else 1.0)
             status[i] = MERGED if merged[b] else SEEN
         # A marker left without a blob shares one big enough for two that a single marker
