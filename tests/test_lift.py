@@ -135,34 +135,49 @@ def test_session_landmarks_moved_onto_the_markers() -> None:
     assert shift.max() < 2 * np.linalg.norm(xy[seen] - points[VERTICES[seen], :2], axis=1).max()
 
 
-def rebuilt_marker_errors(tracker: MarkerFaceTracker | None, frames: list) -> np.ndarray:  # noqa: ANN001
+def rebuilt_markers(tracker: MarkerFaceTracker | None, frames: list) -> np.ndarray:  # noqa: ANN001
     """The sender with ``tracker`` (None: the landmark tracker), its packets decoded by the
-    receiver's decoder: the rebuilt face's markers against the clip's truth, px."""
+    receiver's decoder: (frames, k, 2) the rebuilt face's markers, px."""
     encoder = FaceEncoder(640, 480, 30.0, tracker=tracker)
     snapshot = encoder.start(frames[0])
     assert snapshot is not None
     wanted = "markers" if tracker is not None else "mediapipe-landmarks"
     assert snapshot.meta["tracker"] == wanted
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-    shown, err = None, []
+    shown, out = None, []
     for frame in frames:
         packet = encoder.encode(frame)
         if packet is not None:
             shown = decoder.decode(decode(bytes(packet)))  # type: ignore[arg-type]
         assert shown is not None
-        rebuilt = decoder.image_vertices(shown)[VERTICES, :2]
-        visible = T["marker_visible"][frame.index]
-        err.append(np.linalg.norm(rebuilt - T["marker_xy"][frame.index], axis=1)[visible])
+        out.append(decoder.image_vertices(shown)[VERTICES, :2])
     assert encoder.frames_untracked == 0
-    return np.concatenate(err)
+    return np.array(out)
 
 
 def test_encoder_with_markers_through_packets() -> None:
     """Neutral, then into a smile and held (frames 0-89), both trackers through the call's
     packets: the markers rebuild the face closer to the truth than the landmarks do."""
     frames = [CapturedFrame(i, image, 0) for i, image in clip_frames(90)]
-    by_markers = rebuilt_marker_errors(MarkerFaceTracker(), frames)
-    by_landmarks = rebuilt_marker_errors(None, frames)
-    assert np.median(by_markers) < 1.0
-    assert np.median(by_markers) < 0.5 * np.median(by_landmarks)
-    assert np.percentile(by_markers, 90) < np.percentile(by_landmarks, 90)
+    runs = {"markers": MarkerFaceTracker(), "landmarks": None}
+    rebuilt = {name: rebuilt_markers(tracker, frames) for name, tracker in runs.items()}
+    visible = T["marker_visible"][:90]
+    err = {k: np.linalg.norm(v - T["marker_xy"][:90], axis=2)[visible] for k, v in rebuilt.items()}
+    assert np.median(err["markers"]) < 1.0
+    assert np.median(err["markers"]) < 0.5 * np.median(err["landmarks"])
+    assert np.percentile(err["markers"], 90) < np.percentile(err["landmarks"], 90)
+    # The held smile (frames 60-78): how far the rebuilt mouth corners go of the way the
+    # truth's go from the neutral face. The wire basis, learnt from the landmark tracker's
+    # motion, keeps both short of it (BENCHMARKS.md); the markers get further.
+    corners = [i for i, m in enumerate(RIG.markers) if m.name.startswith("mouth_")]
+    reach = {}
+    for name, got in rebuilt.items():
+        share = []
+        for f in range(60, 79):
+            neutral = clip_pose(f).apply(T["person_vertices"])[VERTICES[corners], :2]
+            true = T["marker_xy"][f][corners] - neutral
+            moved = got[f][corners] - neutral
+            share.append((moved * true).sum(axis=1) / (true * true).sum(axis=1))
+        reach[name] = float(np.mean(share))
+    assert reach["markers"] > 0.3
+    assert reach["markers"] > 1.5 * reach["landmarks"]

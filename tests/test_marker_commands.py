@@ -12,10 +12,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from marker_clip import truth
+from marker_clip import clip_frames, truth
 
 from facewire.cli import main
 from sender.capture import demo_clip_path
+from sender.markers import MarkerTracker
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 T = truth()
@@ -62,6 +63,16 @@ def test_track_markers_writes_every_marker(tmp_path: Path, capsys) -> None:  # n
     assert doc["tracker"] == "markers" and doc["smoothed"] is False
     assert [f["state"] for f in doc["frames"]] == ["acquired"] + ["tracked"] * 39
     names = [str(n) for n in T["marker_names"]]
+    # The file says what the tracker says, frame by frame.
+    tracker = MarkerTracker()
+    for (index, image), record in zip(clip_frames(40), doc["frames"], strict=True):
+        found = tracker.track(image)
+        assert found is not None and record["index"] == index
+        conf = [m["confidence"] for m in record["markers"]]
+        np.testing.assert_allclose(conf, found.confidence, atol=1e-3)
+        assert [m["status"] for m in record["markers"]] == list(found.status)
+        assert [m["role"] for m in record["markers"]] == list(found.roles)
+        np.testing.assert_allclose(record["pose"]["rotation"], found.pose.rotation, atol=1e-5)
     for record in doc["frames"]:
         markers = record["markers"]
         assert [m["name"] for m in markers] == names
