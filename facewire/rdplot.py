@@ -52,9 +52,9 @@ def plot(result: dict[str, Any], path: Path) -> None:
                     ax.plot(*zip(*curve, strict=True), "o-", color=colour, label=label, ms=5)
             rate = ours["kbps"]["payload"][accounting]
             ssim = ours["quality"]["ssim"][region]
-            ax.plot(rate, ssim, "*", color=OURS, ms=18, label=f"facewire ({rate:.1f} kbit/s)")
+            ax.plot(rate, ssim, "*", color=OURS, ms=18, label="facewire (our call)")
             ax.annotate(
-                f"facewire\n{ssim:.3f}",
+                f"facewire\n{ssim:.3f} at {rate:.1f} kbit/s",
                 (rate, ssim),
                 textcoords="offset points",
                 xytext=(10, -22),
@@ -67,7 +67,9 @@ def plot(result: dict[str, Any], path: Path) -> None:
             ax.set_ylabel(f"{region} SSIM (luma)")
             ax.set_title(f"{region} region, {accounting}")
             ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=8, loc="lower right")
+    # One legend for the four panels, above them: inside a panel it can hide our star.
+    handles, names = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="upper center", ncol=4, fontsize=9, bbox_to_anchor=(0.5, 0.955))
     name = Path(result["input"]).name
     fig.suptitle(
         f"{name}: {result['width']}x{result['height']}, {result['frames']} frames at "
@@ -75,7 +77,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
         "ladder (faint: every rung)",
         fontsize=11,
     )
-    fig.tight_layout(rect=(0, 0, 1, 0.96))
+    fig.tight_layout(rect=(0, 0, 1, 0.92))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     logger.info("wrote %s", path)
