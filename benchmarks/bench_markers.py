@@ -191,7 +191,7 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
         assert snapshot is not None and encoder.wires is not None
         decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
         shown = None
-        all_err, marker_err, wire_err, lids, sizes, times = [], [], [], [], [], []
+        all_err, marker_err, wire_err, lids, wire_lids, sizes, times = [], [], [], [], [], [], []
         for i, image in enumerate(frames):
             frame = CapturedFrame(i, image, 0)
             t0 = time.perf_counter()
@@ -218,6 +218,9 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
                 wire_err.append(np.linalg.norm(w[:, :2] - want[:, :2], axis=1))
             if i in truth["blink_frames"]:
                 lids.append(np.mean([np.linalg.norm(got[a, :2] - got[b, :2]) for a, b in LIDS]))
+                if result is not None:
+                    gap = [np.linalg.norm(w[a, :2] - w[b, :2]) for a, b in LIDS]
+                    wire_lids.append(float(np.mean(gap)))
         decoder.close()
         a, m = np.concatenate(all_err), np.concatenate(marker_err)
         kbps = np.sum(sizes) * 8 * fps / len(frames) / 1000
@@ -226,6 +229,7 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
             f"{np.median(m):.2f} / {np.percentile(m, 90):.2f}",
             f"{np.median(np.concatenate(wire_err)):.2f}",
             ", ".join(f"{g:.1f}" for g in lids),
+            ", ".join(f"{g:.1f}" for g in wire_lids),
             f"{kbps:.2f}",
             _ms(times[1:]),
         ]
@@ -234,6 +238,7 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
         "the rig's markers, px (median / p90)",
         "wires fitted, before the basis: all vertices, px (median)",
         "lid gap at the 5 blinks, px (truth 4.1; open 14.7)",
+        "the same, wires fitted, before the basis",
         "geometry frame packets, kbit/s",
         "sender per frame (track + fit + packet)",
     ]
