@@ -22,7 +22,18 @@ import numpy as np
 
 #: The call settings, spelt out as ffmpeg options (see README, facewire bandwidth).
 SETTINGS = {
-    "h264": ["-c:v", "libx264", "-preset", "medium", "-tune", "zerolatency", "-bf", "0"],
+    "h264": [
+        "-c:v",
+        "libx264",
+        "-preset",
+        "medium",
+        "-tune",
+        "zerolatency",
+        "-bf",
+        "0",
+        "-threads",
+        "1",
+    ],
     "vp9": [
         "-c:v",
         "libvpx-vp9",
