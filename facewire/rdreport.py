@@ -20,33 +20,41 @@ logger = logging.getLogger(__name__)
 #: Quality regions compared in the final table and the plot.
 COMPARED = ("face", "head")
 ACCOUNTING = ("amortised", "steady")
+#: Rates compared: the payload (our messages, the codecs' bitstream), and IP packets (ours
+#: over ZeroMQ and TCP, theirs over SRTP; facewire.wire).
+LEVELS = ("payload", "wire")
 
 
 def codec_curve(
-    points: Sequence[dict[str, Any]], codec: str, region: str, accounting: str
+    points: Sequence[dict[str, Any]],
+    codec: str,
+    region: str,
+    accounting: str,
+    level: str = "payload",
 ) -> list[tuple[float, float]]:
-    """A codec's envelope over its ladder: (kbit/s payload, SSIM of ``region``)."""
+    """A codec's envelope over its ladder: (kbit/s at ``level``, SSIM of ``region``)."""
     return envelope(
-        (p["kbps"]["payload"][accounting], p["ssim"][region]) for p in points if p["codec"] == codec
+        (p["kbps"][level][accounting], p["ssim"][region]) for p in points if p["codec"] == codec
     )
 
 
 def matches(
     ours: dict[str, Any], points: Sequence[dict[str, Any]], names: Sequence[str]
 ) -> list[dict[str, Any]]:
-    """For each codec, region and accounting: the rate it needs to match our SSIM, that rate
-    over ours, and its SSIM at our rate."""
+    """For each codec, region, accounting and level: the rate it needs to match our SSIM, that
+    rate over ours, and its SSIM at our rate."""
     out = []
-    for codec, region, accounting in itertools.product(names, COMPARED, ACCOUNTING):
-        our_rate = ours["kbps"]["payload"][accounting]
+    for codec, region, level, accounting in itertools.product(names, COMPARED, LEVELS, ACCOUNTING):
+        our_rate = ours["kbps"][level][accounting]
         our_ssim = ours["quality"]["ssim"][region]
-        curve = codec_curve(points, codec, region, accounting)
+        curve = codec_curve(points, codec, region, accounting, level)
         need = rate_for(curve, our_ssim)
         out.append(
             {
                 "codec": codec,
                 "region": region,
                 "accounting": accounting,
+                "level": level,
                 "our_kbps": our_rate,
                 "our_ssim": our_ssim,
                 "codec_kbps": None if need is None else need.rate,
@@ -70,7 +78,11 @@ def break_even(result: dict[str, Any]) -> list[dict[str, Any]]:
     duration = result["frames"] / result["fps"]
     ours = result["ours"]["kbps"]["payload"]
     our_startup = (ours["amortised"] - ours["steady"]) * duration
-    by_key = {(m["codec"], m["region"], m["accounting"]): m for m in result["matches"]}
+    by_key = {
+        (m["codec"], m["region"], m["accounting"]): m
+        for m in result["matches"]
+        if m.get("level", "payload") == "payload"
+    }
     out = []
     for codec, region in sorted({(m["codec"], m["region"]) for m in result["matches"]}):
         a, s = by_key[codec, region, "amortised"], by_key[codec, region, "steady"]
@@ -141,14 +153,16 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
         f"  {'codec':<6}{'region':<7}{'our SSIM':>9}  {'amortised kbit/s':>17} {'x ours':>7}  "
         f"{'steady kbit/s':>14} {'x ours':>7}   its SSIM at our rate (amortised / steady)"
     )
+    by = {
+        (m["codec"], m["region"], m.get("level", "payload"), m["accounting"]): m
+        for m in result["matches"]
+    }
     for spec in specs:
         for region in COMPARED:
-            by = {
-                m["accounting"]: m
-                for m in result["matches"]
-                if m["codec"] == spec.name and m["region"] == region
-            }
-            a, s = by["amortised"], by["steady"]
+            a, s = (
+                by[spec.name, region, "payload", "amortised"],
+                by[spec.name, region, "payload", "steady"],
+            )
             print(
                 f"  {spec.name:<6}{region:<7}{a['our_ssim']:>9.3f}  "
                 f"{_need(a):>17} {_times(a):>7}  {_need(s):>14} {_times(s):>7}   "
@@ -165,6 +179,18 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
         f"  (ours: {a_rate:.1f} kbit/s amortised, {s_rate:.1f} steady; "
         "- : outside the rates measured)"
     )
+    wire_rate = ours["kbps"]["wire"]["steady"]
+    print(
+        f"\non the wire, steady (ours {wire_rate:.1f} kbit/s of IP packets over ZeroMQ and TCP; "
+        "theirs over SRTP/UDP): rate each codec needs for our SSIM, x ours"
+    )
+    for region in COMPARED:
+        cells = []
+        for spec in specs:
+            m = by.get((spec.name, region, "wire", "steady"))
+            if m is not None:
+                cells.append(f"{spec.name} {_need(m)} ({_times(m)})")
+        print(f"  {region}: " + ", ".join(cells))
 
 
 def _need(m: dict[str, Any]) -> str:

@@ -87,12 +87,13 @@ def test_json_holds_the_call_and_every_operating_point(result: dict[str, Any]) -
             )
             assert hi["bytes"] > lo["bytes"] and hi["ssim"]["face"] > lo["ssim"]["face"]
 
-    assert len(result["matches"]) == 3 * 2 * 2
+    assert len(result["matches"]) == 3 * 2 * 2 * 2
     for m in result["matches"]:
         assert m["region"] in ("face", "head") and m["accounting"] in ("amortised", "steady")
+        assert m["level"] in ("payload", "wire")
         assert m["bound"] in ("=", "<=", ">")
         assert m["times_ours"] == pytest.approx(m["codec_kbps"] / m["our_kbps"])
-        assert m["our_kbps"] == result["ours"]["kbps"]["payload"][m["accounting"]]
+        assert m["our_kbps"] == result["ours"]["kbps"][m["level"]][m["accounting"]]
         assert m["our_ssim"] == result["ours"]["quality"]["ssim"][m["region"]]
     assert {(b["codec"], b["region"]) for b in result["break_even"]} == {
         (c, r) for c in ("h264", "vp9", "av1") for r in ("face", "head")
