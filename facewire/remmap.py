@@ -93,7 +93,8 @@ class Accumulated:
     texture: np.ndarray  # T, px (brightness residual as normal flow)
     luma: np.ndarray  # brightness residual r, levels
     unexplained: np.ndarray  # |F - model motion|, px
-    frames: int = 0
+    frames: int = 0  # pairs of consecutive frames with a face compared
+    read: int = 0  # frames read, the first with a face and those before it included
 
     @classmethod
     def empty(cls) -> Accumulated:
@@ -134,7 +135,9 @@ def analyse(path: str | Path, frames: int | None = None) -> tuple[Accumulated, R
         encoder = FaceEncoder(video.width, video.height, video.fps, rem=False)
         it = video.frames(limit=frames)
         snapshot = None
+        read = 0
         for f in it:
+            read += 1
             snapshot = encoder.start(CapturedFrame(f.index, f.image, f.capture_us))
             if snapshot is not None or f.index >= FACE_SEARCH:
                 break
@@ -145,11 +148,13 @@ def analyse(path: str | Path, frames: int | None = None) -> tuple[Accumulated, R
         rasteriser = UvRasteriser(layout.triangles, layout.uvs, GRID)
         texture = cv2.resize(encoder.session.texture, (GRID, GRID), interpolation=cv2.INTER_AREA)
         acc = Accumulated.empty()
+        acc.read = read
         winsize = max(9, int(round(video.width / 40)) | 1)
         covered = rasteriser.covered_index
         uv_area = _uv_areas(layout)
         previous = None
         for f in it:
+            acc.read += 1
             frame = CapturedFrame(f.index, f.image, f.capture_us)
             result = encoder.analyse(frame.image)
             encoder.encode_analysed(frame, result)
@@ -203,8 +208,13 @@ def analyse(path: str | Path, frames: int | None = None) -> tuple[Accumulated, R
 def _uv_areas(layout: RemLayout) -> np.ndarray:
     uv = layout.uvs * GRID
     t = layout.triangles
-    a, b, c = uv[t[:, 0]], uv[t[:, 1]], uv[t[:, 2]]
-    return 0.5 * np.abs(np.cross(b - a, c - a))
+    return _areas(uv[t[:, 0]], uv[t[:, 1]], uv[t[:, 2]])
+
+
+def _areas(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Areas of 2-D triangles (k, 2) each."""
+    u, v = b - a, c - a
+    return np.asarray(0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]))
 
 
 def _squeeze(layout: RemLayout, vertices: np.ndarray, uv_area: np.ndarray) -> np.ndarray:
@@ -212,7 +222,7 @@ def _squeeze(layout: RemLayout, vertices: np.ndarray, uv_area: np.ndarray) -> np
     where it is squeezed (a shut mouth's inside shows nothing)."""
     t = layout.triangles
     a, b, c = vertices[t[:, 0], :2], vertices[t[:, 1], :2], vertices[t[:, 2], :2]
-    ratio = 0.5 * np.abs(np.cross(b - a, c - a)) / np.maximum(uv_area, 1e-9)
+    ratio = _areas(a, b, c) / np.maximum(uv_area, 1e-9)
     typical = float(np.median(ratio[uv_area > 0]))
     return np.clip(ratio / max(typical, 1e-9), 0.0, 1.0)
 
@@ -319,7 +329,7 @@ def run_rem_map(args: argparse.Namespace) -> int:
     image = draw_map(acc, layout, texture, figures)
     if not cv2.imwrite(str(args.output), image):
         raise OSError(f"cannot write {args.output}")
-    result = {"input": str(args.input), "frames": acc.frames + 1, **figures}
+    result = {"input": str(args.input), "frames": acc.read, "pairs": acc.frames, **figures}
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     for name, fig in figures["regions"].items():

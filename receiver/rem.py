@@ -45,6 +45,21 @@ logger = logging.getLogger(__name__)
 MAX_PENDING = 16
 
 
+#: A texel of a patch replaces the texture's where their luma differs by more than
+#: GATE_LOW (fully from GATE_HIGH): where they agree, the snapshot's clean texel stays (a
+#: patch coded in 100 bytes is blocky on smooth skin, which SSIM sees).
+GATE_LOW, GATE_HIGH = 6.0, 18.0
+
+
+def _gate(patch: np.ndarray, under: np.ndarray) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: where ``patch`` brings something the texture lacks."""
+    weights = np.float32([0.114, 0.587, 0.299])
+    d = np.abs((patch.astype(np.float32) - under) @ weights)
+    d = cv2.GaussianBlur(d, (5, 5), 0)
+    gate = np.clip((d - GATE_LOW) / (GATE_HIGH - GATE_LOW), 0.0, 1.0)
+    return np.asarray(cv2.GaussianBlur(gate, (5, 5), 0), np.float32)
+
+
 def _scope(layout: RemLayout, size: int) -> np.ndarray:
     """Where the texture takes on the video's colour: each region's box, fading out over
     about twice its height (a smooth step, no edge of its own)."""
@@ -195,8 +210,9 @@ class RemMerger:
         for name, image in self._patches.items():
             box = self.layout.boxes[name]
             rows, cols = box.texture_slices
-            a = box.texture_alpha[:, :, None]
             under = texture[rows, cols].astype(np.float32)
+            a = box.texture_alpha * _gate(image, under)
+            a = a[:, :, None]
             texture[rows, cols] = np.clip(a * image + (1.0 - a) * under + 0.5, 0, 255).astype(
                 np.uint8
             )

@@ -51,7 +51,7 @@ BUCKET_S = 2.5
 #: Seconds of budget in the bucket when the session starts.
 START_S = 0.2
 #: WebP qualities tried, best first; a patch gets the best that fits its share of the bucket.
-QUALITIES = (70, 50, 35)
+QUALITIES = (70, 50, 35, 20, 10)
 #: A texel has changed when its luma moved by more than this (0-255) ...
 CHANGE_LEVEL = 24.0
 #: ... and a region has when this fraction of its (weighted) texels did.
@@ -63,7 +63,11 @@ SAME_FRACTION = CHANGE_FRACTION / 2
 EYE_HEAD_START = 15
 #: An eye that changed on this fraction of its texels (a blink, a glance) may spend the
 #: bytes kept for the eyes; a smaller change (the head turning the light on it) may not.
-BIG_CHANGE = 0.12
+BIG_CHANGE = 0.15
+#: A change still growing (by more than this factor a frame: a lid closing, a glance on its
+#: way) waits for where it comes to rest, at most SETTLE_FRAMES frames.
+SETTLED = 1.15
+SETTLE_FRAMES = 2
 #: The mouth's inside is looked at only while it is open: its area on screen at least this
 #: fraction of the mouth's width squared.
 MOUTH_OPEN = 0.03
@@ -145,6 +149,7 @@ class _Region:
     current: _Image  # what it shows
     held: list[_Image] = field(default_factory=list)  # images it keeps, oldest first
     waiting: int = 0  # frames it has been changed and not sent
+    score: float = 0.0  # its change in the last frame (0: none)
     dirty: bool = False  # something was sent for it since the last keyframe
 
     def choices(self) -> list[_Image]:
@@ -220,7 +225,7 @@ class RemEncoder:
             }
         )
         self._refresh_all = False
-        self._sizes: dict[str, dict[int, int]] = {}  # region -> WebP quality -> last bytes
+        self._smallest: dict[str, int] = {}  # region -> bytes of its last patch's lowest quality
         self.counts = RemCounts()
         self.colour: ColourStats | None = None  # the last frame's reference colour
 
@@ -283,13 +288,21 @@ class RemEncoder:
     def _mouth_open(self, vertices: np.ndarray) -> bool:
         strip = self._triangles[self.layout.interior_triangles]
         a, b, c = vertices[strip[:, 0], :2], vertices[strip[:, 1], :2], vertices[strip[:, 2], :2]
-        area = 0.5 * np.abs(np.cross(b - a, c - a)).sum()
+        u, v = b - a, c - a
+        area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
         width = float(np.ptp(vertices[np.unique(strip), 0]))
         return bool(width > 0 and area >= MOUTH_OPEN * width * width)
 
     # -- deciding -------------------------------------------------------------------------
 
-    def change(self, name: str, patch: np.ndarray, seen: np.ndarray, against: _Image) -> float:
+    def change(
+        self,
+        name: str,
+        patch: np.ndarray,
+        seen: np.ndarray,
+        against: _Image,
+        shifts: tuple[int, ...] = (0, 1, 2),
+    ) -> float:
         """Fraction of region ``name``'s weighted texels whose luma differs by more than
         CHANGE_LEVEL from image ``against``, once the two are aligned.
 
@@ -297,7 +310,10 @@ class RemEncoder:
         about a texel, which must not count as a change at every edge: both are smoothed a
         little, and ``against`` is shifted by the whole texel (of the nine, -1 to 1 in each
         direction) that matches best. A change of the eye itself (lids, iris, the white of
-        the eye) stays."""
+        the eye) stays. ``shifts`` (0 to 2: -1 to 1 texel) are the offsets tried.
+
+        An image held that matches this way is drawn where it was cut: up to a texel off,
+        the eye in it may lie a pixel or two from where the camera saw it this frame."""
         weight = self.layout.boxes[name].alpha * seen
         total = float(weight.sum())
         if total <= 0:
@@ -306,8 +322,8 @@ class RemEncoder:
         luma = _smooth(patch)
         h, w = luma.shape
         best = np.inf
-        for dy in (0, 1, 2):
-            for dx in (0, 1, 2):
+        for dy in shifts:
+            for dx in shifts:
                 d = np.abs(luma - ref[dy : dy + h, dx : dx + w])
                 cost = float((weight * d).sum())
                 if cost < best:
@@ -318,41 +334,61 @@ class RemEncoder:
         """The next keyframe repeats every region (a receiver asked for one)."""
         self._refresh_all = True
 
-    def changed(self, seq: int, image: np.ndarray, vertices: np.ndarray) -> list[RemPatch]:
+    def changed(
+        self,
+        seq: int,
+        image: np.ndarray,
+        vertices: np.ndarray,
+        tracked: np.ndarray | None = None,
+    ) -> list[RemPatch]:
         """Patches of the regions that changed in frame ``seq`` and that the bucket allows.
 
         image : (h, w, 3) uint8 BGR; vertices : (n, 3) the face's vertices as the receiver
-        rebuilds this frame, image space (n = the layout's face vertex count).
+        rebuilds this frame, image space (n = the layout's face vertex count); tracked :
+        (n, 3) the face as tracked in this frame, if known. The mouth's inside is cut
+        between the tracked inner lips: the rebuilt mouth opens less than the real one
+        (the wires under-shoot it), and between its lips the frame shows lip, not the
+        teeth and tongue the receiver's opening should show.
         """
         self.tokens = min(self.capacity, self.tokens + self.rate)
         ext = self.layout.vertices(vertices)
+        mouth = ext if tracked is None else self.layout.vertices(tracked)
         # The eyes are cut for their skin's colour even when they are not sent.
         wanted = self.regions + tuple(n for n in self._colour_regions if n not in self.regions)
-        cuts = {name: self.cut(image, ext, name) for name in wanted}
+        cuts = {
+            name: self.cut(image, mouth if name == MOUTH_INTERIOR else ext, name) for name in wanted
+        }
         self.colour = self._colour(cuts)
         candidates = []
         for name in self.regions:
             patch, seen = cuts[name]
             state = self.states[name]
-            if name == MOUTH_INTERIOR and not self._mouth_open(ext):
+            if name == MOUTH_INTERIOR and not self._mouth_open(mouth):
                 state.waiting = 0  # hidden: nothing to show
                 continue
             score = self.change(name, patch, seen, state.current)
             # Hysteresis: a change waiting for the bucket stays one until it is sent or
             # has mostly gone again.
             if score < (SAME_FRACTION if state.waiting else CHANGE_FRACTION):
-                state.waiting = 0
+                state.waiting, state.score = 0, 0.0
                 continue
             self.counts.changed_frames[name] = self.counts.changed_frames.get(name, 0) + 1
             state.waiting += 1
+            rising, state.score = score > SETTLED * state.score, score
+            if rising and state.waiting < SETTLE_FRAMES:
+                continue  # a lid still closing: send where it comes to rest
             head = EYE_HEAD_START if name in EYES else 0
             weight = float((self.layout.boxes[name].alpha * seen).sum())
             candidates.append((state.waiting + head, score * weight, name, score))
         candidates.sort(reverse=True)
         out: list[RemPatch] = []
+        serving = {c[2] for c in candidates}
         for i, (_, _, name, score) in enumerate(candidates):
             big = name in EYES and score >= BIG_CHANGE
-            packet = self._send(seq, name, *cuts[name], len(candidates) - i, big)
+            # The bytes kept for the eyes are for eyes not served this frame; a blink or a
+            # glance may spend them, anything else only what leaves them.
+            reserve = self._eye_reserve(but=serving if big else set())
+            packet = self._send(seq, name, *cuts[name], len(candidates) - i, reserve)
             if packet is None:  # the rest wait their turn behind it
                 self.counts.waited += len(candidates) - i
                 break
@@ -360,11 +396,17 @@ class RemEncoder:
         return out
 
     def _send(
-        self, seq: int, name: str, patch: np.ndarray, seen: np.ndarray, sharing: int, big: bool
+        self,
+        seq: int,
+        name: str,
+        patch: np.ndarray,
+        seen: np.ndarray,
+        sharing: int,
+        reserve: float,
     ) -> RemPatch | None:
         """A reference to an image the receiver holds that matches, else the image coded
-        to fit its share of the bucket; None, nothing spent, when the bucket cannot pay.
-        Only a ``big`` change may spend the bytes kept for the eyes."""
+        to fit its share of what the bucket holds beyond ``reserve``; None, nothing spent,
+        when the bucket cannot pay."""
         state = self.states[name]
         h, s, v = self._stats()
         scores = [(self.change(name, patch, seen, img), i) for i, img in enumerate(state.choices())]
@@ -374,11 +416,8 @@ class RemEncoder:
             packet = RemPatch.referring(seq, name, held.key, h, s, v)
             if not self._pay(packet, repeat=False):
                 return None
-            state.current, state.waiting, state.dirty = held, 0, True
+            state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
             return packet
-        # A blink or a glance may spend the whole bucket; anything else only what leaves
-        # room for both eyes' next images.
-        reserve = 0.0 if big else self._eye_reserve()
         available = self.tokens - reserve
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
@@ -387,18 +426,18 @@ class RemEncoder:
         if not self._pay(packet, repeat=False):
             return None
         self._hold(state, _image(seq, patch, packet))
-        state.waiting, state.dirty = 0, True
+        state.waiting, state.score, state.dirty = 0, 0.0, True
         logger.debug("REM %s at frame %d: WebP q%d, %d bytes", name, seq, quality, len(data))
         return packet
 
-    def _eye_reserve(self) -> float:
-        """Bytes kept for both eyes' next images (their last sizes at a middle quality)."""
-        middle = QUALITIES[len(QUALITIES) // 2]
+    def _eye_reserve(self, but: set[str]) -> float:
+        """Bytes kept for the eyes' next images (their last sizes at the lowest quality),
+        but for the eyes in ``but``."""
         return float(
             sum(
-                self._sizes.get(n, {}).get(middle, 0) + PACKET_OVERHEAD
+                self._smallest.get(n, 0) + PACKET_OVERHEAD
                 for n in self.regions
-                if n in EYES
+                if n in EYES and n not in but
             )
         )
 
@@ -406,25 +445,20 @@ class RemEncoder:
         self, name: str, patch: np.ndarray, share: float, available: float
     ) -> tuple[bytes | None, int]:
         """WebP bytes at the best quality whose size fits ``share`` (the lowest if none
-        does); None when it would not fit ``available`` anyway."""
-        sizes = self._sizes.setdefault(name, {})
-        smallest = sizes.get(QUALITIES[-1])
+        does); None when even the lowest would not fit ``available``."""
+        smallest = self._smallest.get(name)
         if smallest is not None and smallest + PACKET_OVERHEAD > available:
-            return None, 0  # not even the smallest fits: no need to code it to know
-        # Start from the best quality its last sizes say fits, then step down.
-        start = next(
-            (i for i, q in enumerate(QUALITIES) if sizes.get(q, 0) + PACKET_OVERHEAD <= share),
-            len(QUALITIES) - 1,
-        )
-        data = b""
-        quality = QUALITIES[start]
-        for quality in QUALITIES[start:]:
-            data = encode_webp(patch, quality)
-            sizes[quality] = len(data)
-            if len(data) + PACKET_OVERHEAD <= share:
+            return None, 0  # its last patch at the lowest quality did not fit either
+        data, quality = b"", QUALITIES[-1]
+        for q in reversed(QUALITIES):  # the lowest first: it tells whether any fits
+            coded = encode_webp(patch, q)
+            if q == QUALITIES[-1]:
+                self._smallest[name] = len(coded)
+                if len(coded) + PACKET_OVERHEAD > available:
+                    return None, q
+            elif len(coded) + PACKET_OVERHEAD > share:
                 break
-        if len(data) + PACKET_OVERHEAD > available:
-            return None, quality
+            data, quality = coded, q
         return data, quality
 
     def _pay(self, packet: RemPatch, repeat: bool, owed: bool = False) -> bool:
@@ -469,7 +503,7 @@ class RemEncoder:
                 old = current.packet
                 assert old is not None
                 packet = RemPatch(seq, name, old.codec, old.data, h, s, v)
-            if not owed and len(bytes(packet)) > self.tokens - self._eye_reserve():
+            if not owed and len(bytes(packet)) > self.tokens - self._eye_reserve(set()):
                 continue
             self._pay(packet, repeat=True, owed=True)
             if packet.reference is None:
