@@ -2,6 +2,7 @@
 rebuilt face from the markers next to the landmark tracker's.
 
 Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_markers.py [--threads T]
+       python benchmarks/bench_markers.py --stickers CLIP [--stickers CLIP ...] [--frames N]
 
 Printed:
 - 2D markers: error against the truth over every marker the clip drew (px), markers missed,
@@ -17,6 +18,7 @@ Printed:
   and the markers against the truth (px), the lids at the scripted blinks, geometry bit
   rate, sender time per frame; for the markers also the wires fitted before the basis.
 - Ray casting time: the BVH against every triangle, for the rig's 29 rays.
+- With ``--stickers``: real footage with the markers drawn on it (see :func:`stickers_on`).
 
 Times are medians on one OpenCV thread; the machine's load average is printed with them.
 """
@@ -273,11 +275,89 @@ def raycast_speed(truth: dict[str, Any]) -> None:
     print(f"  refitting the BVH to moved vertices: {_ms(t)}")
 
 
+def stickers_on(path: str, limit: int) -> None:
+    """Real footage with stickers drawn on: the rig's markers (the clip's colours, about 4 %
+    of the face's width across) drawn where the landmark tracker puts their vertices, on the
+    vertices that face the camera, the video written through MPEG-4 Part 2 and read back,
+    then tracked. The landmarks jitter, so the "truth" moves as no sticker would."""
+    import tempfile
+    from pathlib import Path
+
+    from sender.landmarks import LandmarkTracker
+
+    rig = load_rig()
+    canonical = load_canonical()
+    vertices = np.array([m.vertex for m in rig.markers])
+    colours = {"pose": (0, 200, 0), "deform": (230, 80, 0), "mouth": (0, 0, 230)}
+    landmarks = LandmarkTracker()
+    frames, truths = [], []
+    radius = 0.0
+    with VideoSource(path) as video:
+        fps = video.fps
+        for frame in video.frames(limit=limit):
+            image = frame.image.copy()
+            found = landmarks.track(image)
+            xy = np.full((len(vertices), 2), np.nan)
+            if found is not None:
+                facing = -canonical.vertex_normals(found.points)[vertices, 2] > 0.2
+                radius = max(1.5, 0.02 * float(np.ptp(found.points[:, 0])))
+                for i, m in enumerate(rig.markers):
+                    if facing[i]:
+                        xy[i] = found.points[m.vertex, :2]
+                        c = (int(round(xy[i, 0] * 16)), int(round(xy[i, 1] * 16)))
+                        cv2.circle(
+                            image, c, int(round(radius * 16)), colours[m.role], -1, cv2.LINE_AA, 4
+                        )
+            frames.append(image)
+            truths.append(xy)
+    h, w = frames[0].shape[:2]
+    with tempfile.TemporaryDirectory() as tmp:
+        clip = Path(tmp) / "stickers.mp4"
+        writer = cv2.VideoWriter(str(clip), cv2.VideoWriter.fourcc(*"mp4v"), fps, (w, h))
+        for image in frames:
+            writer.write(image)
+        writer.release()
+        tracker = MarkerTracker()
+        err, missed, wrong, tracked = [np.zeros(0)], 0, 0, 0
+        states: dict[str, int] = {}
+        with VideoSource(clip) as video:
+            for frame, xy in zip(video.frames(), truths, strict=False):
+                found = tracker.track(frame.image)
+                states[tracker.state] = states.get(tracker.state, 0) + 1
+                if found is None:
+                    continue
+                tracked += 1
+                shown = np.isfinite(xy[:, 0])
+                e = np.linalg.norm(found.xy - np.nan_to_num(xy), axis=1)
+                err.append(e[shown & found.seen])
+                missed += int((shown & ~found.seen).sum())
+                wrong += int((e[shown & found.seen] > 5).sum())
+    e = np.concatenate(err)
+    print(
+        f"stickers drawn on {Path(path).name} ({len(frames)} frames, {w}x{h}, stickers "
+        f"{2 * radius:.1f} px across): {tracked} frames tracked {states}; "
+        + (f"error px {_stats(e)}; " if len(e) else "")
+        + f"missed {missed} of {len(e) + missed}; more than 5 px off {wrong}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
+    parser.add_argument(
+        "--stickers",
+        metavar="CLIP",
+        action="append",
+        default=[],
+        help="also real footage with stickers drawn on (repeatable); only this is run",
+    )
+    parser.add_argument("--frames", type=int, default=180, help="frames of each --stickers clip")
     args = parser.parse_args()
     cv2.setNumThreads(args.threads)
+    if args.stickers:
+        for path in args.stickers:
+            stickers_on(path, args.frames)
+        return
     truth = dict(np.load(demo_clip_path().with_name("demo_clip_truth.npz")))
     with VideoSource(demo_clip_path()) as video:
         frames = [f.image for f in video.frames()]
