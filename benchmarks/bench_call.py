@@ -1,12 +1,14 @@
 """Time both ends of a call on the bundled clip, and how close the rebuild is to the truth.
 
-Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call.py [--threads T]
+Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call.py [--threads T] [--no-rem]
 
-Sender: track + pose + wire fit + basis projection + quantise + channel coding + packet
-bytes, per frame. Receiver: decode + dequantise + wire deformation + pose + the warp of the
-head's surroundings (person and scene layers, camera) + render over it, per frame. Accuracy: rebuilt rig markers against the clip's ground-truth marker positions
-(pixels), and the eyelid gap at the scripted blinks. Glass-to-glass latency over sockets
-comes from `facewire demo --stats`.
+Sender: track + pose + wire fit + basis projection + quantise + channel coding + REM patches
+(cut, change detection, WebP) + packet bytes, per frame. Receiver: decode + dequantise + wire
+deformation + pose + REM patches (decode, colour adaptation, merge, texture upload) + the warp
+of the head's surroundings (person and scene layers, camera) + render over it, per frame.
+Accuracy: rebuilt rig markers against the clip's ground-truth marker positions (pixels), and
+the eyelid gap of the mesh at the scripted blinks (the REM patches' lids are measured by
+bench_rem.py). Glass-to-glass latency over sockets comes from `facewire demo --stats`.
 """
 
 from __future__ import annotations
@@ -35,12 +37,13 @@ def _ms(samples: list[float]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
+    parser.add_argument("--no-rem", action="store_true", help="no REM patches (to compare)")
     args = parser.parse_args()
     cv2.setNumThreads(args.threads)
     truth = dict(np.load(demo_clip_path().with_name("demo_clip_truth.npz")))
     with VideoSource(demo_clip_path()) as video:
         frames = list(video.frames())
-        encoder = FaceEncoder(video.width, video.height, video.fps)
+        encoder = FaceEncoder(video.width, video.height, video.fps, rem=not args.no_rem)
     t0 = time.perf_counter()
     snapshot = encoder.start(frames[0])
     t_start = time.perf_counter() - t0
@@ -51,16 +54,21 @@ def main() -> None:
 
     send, recv, errors, lid = [], [], [], []
     lid_open = 0.0
-    sizes = []
+    sizes: list[int] = []
+    rem_sizes: list[int] = []
     markers = truth["marker_vertices"]
     shown = None
     for f in frames:
         t0 = time.perf_counter()
         sent = encoder.encode(f)
         data = b"" if sent is None else bytes(sent)  # None: nothing changed, nothing sent
+        patches = [bytes(p) for p in encoder.take_patches()]  # REM patches of this frame
         send.append(time.perf_counter() - t0)
         sizes.append(len(data))
+        rem_sizes.append(sum(len(p) for p in patches))
         t0 = time.perf_counter()
+        for patch in patches:
+            decoder.add_patch(decode(patch))  # type: ignore[arg-type]
         if data:
             shown = decoder.decode(decode(data))  # type: ignore[arg-type]
         assert shown is not None
@@ -90,6 +98,10 @@ def main() -> None:
     print(
         f"frame packets: {np.mean(sizes):.1f} bytes per frame on average = "
         f"{np.mean(sizes) * 8 * fps / 1000:.1f} kbit/s at {fps:g} fps"
+    )
+    print(
+        f"REM patches: {sum(1 for s in rem_sizes if s)} frames with some, "
+        f"{np.mean(rem_sizes) * 8 * fps / 1000:.2f} kbit/s"
     )
     print(
         f"marker error (px, markers spread over {width:.0f} px): median {np.median(err):.2f}, "

@@ -93,6 +93,24 @@ class Run:
     send_s: list[float] = field(default_factory=list)
     receive_s: list[float] = field(default_factory=list)
     receiver_counts: dict[str, object] = field(default_factory=dict)
+    # CPU seconds spent on REM alone per frame: the sender's cut, detection and coding; the
+    # receiver's patch decoding, adaptation, merging and texture upload.
+    rem_send_s: list[float] = field(default_factory=list)
+    rem_receive_s: list[float] = field(default_factory=list)
+
+
+def _timed(owner: object, name: str, spent: list[float]) -> None:
+    """Wrap ``owner.name`` so each call adds its CPU time (process_time) to ``spent[-1]``."""
+    inner = getattr(owner, name)
+
+    def wrapper(*args: object, **kwargs: object) -> object:
+        t0 = time.process_time()
+        try:
+            return inner(*args, **kwargs)
+        finally:
+            spent[-1] += time.process_time() - t0
+
+    setattr(owner, name, wrapper)
 
 
 def call(
@@ -117,9 +135,17 @@ def call(
     if decoder.rem is not None:
         decoder.rem.adapt_colour = adapt
     run = Run()
+    if encoder.rem is not None and decoder.rem is not None:
+        _timed(encoder.rem, "changed", run.rem_send_s)
+        _timed(encoder.rem, "keyframe", run.rem_send_s)
+        _timed(decoder, "add_patch", run.rem_receive_s)
+        _timed(decoder.rem, "due", run.rem_receive_s)
+        _timed(decoder.renderer, "set_texture", run.rem_receive_s)
     last = None
     try:
         for frame in frames:
+            run.rem_send_s.append(0.0)
+            run.rem_receive_s.append(0.0)
             t0 = time.perf_counter()
             packet = encoder.encode(frame)
             patches = [bytes(p) for p in encoder.take_patches()]
@@ -317,6 +343,17 @@ def bench_clip(path: Path, args: argparse.Namespace) -> None:
             f"{1000 * np.percentile(run.receive_s, 90):.2f} ms"
         )
     print(f"  receiver's REM counts: {runs['REM'].receiver_counts}")
+    rem = runs["REM"]
+
+    def spread(seconds: list[float]) -> str:
+        ms = 1000 * np.asarray(seconds)
+        return (
+            f"median {np.median(ms):.2f} ms, mean {ms.mean():.2f}, p90 "
+            f"{np.percentile(ms, 90):.2f}, max {ms.max():.2f}"
+        )
+
+    print(f"  REM's own CPU time per frame: sender {spread(rem.rem_send_s)}")
+    print(f"    receiver {spread(rem.rem_receive_s)}")
     if path.resolve() == demo_clip_path().resolve():
         print(f"  lid gap at the blinks, truth: {np.round(truth_blink_gaps(), 1).tolist()} px")
         print(f"    input (dots): {np.round(blink_gaps(inputs), 1).tolist()}")

@@ -40,16 +40,16 @@ from models.colour import ColourStats, reference_colour, to_hsv
 from models.rem import EYES, MOUTH_INTERIOR, SENT_REGIONS, RemLayout
 from protocol.constants import REM_CACHE
 from protocol.packets import RemPatch
-from sender.texture import UvRasteriser, fill_invalid
+from sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
 
 #: All REM traffic, payload, on average (DESIGN.md: at most 4 kbit/s); kept a little under.
-BUDGET_KBPS = 3.6
+BUDGET_KBPS = 3.9
 #: Most the bucket holds, in seconds of budget.
 BUCKET_S = 2.5
 #: Seconds of budget in the bucket when the session starts.
-START_S = 0.2
+START_S = 0.0
 #: WebP qualities tried, best first; a patch gets the best that fits its share of the bucket.
 QUALITIES = (70, 50, 35, 20, 10)
 #: A texel has changed when its luma moved by more than this (0-255) ...
@@ -61,8 +61,9 @@ CHANGE_FRACTION = 0.06
 SAME_FRACTION = CHANGE_FRACTION / 2
 #: Frames an eye is taken to have waited already: ahead of a mouth that waited less longer.
 EYE_HEAD_START = 15
-#: An eye that changed on this fraction of its texels (a blink, a glance) may spend the
-#: bytes kept for the eyes; a smaller change (the head turning the light on it) may not.
+#: An eye that changed on this fraction of its texels, with the other eye changed too (a
+#: blink, a glance), may spend the bytes kept for the eyes; a smaller change, or one eye's
+#: alone (the head turning the light on it), may not.
 BIG_CHANGE = 0.15
 #: A change still growing (by more than this factor a frame: a lid closing, a glance on its
 #: way) waits for where it comes to rest, at most SETTLE_FRAMES frames.
@@ -70,7 +71,7 @@ SETTLED = 1.15
 SETTLE_FRAMES = 2
 #: The mouth's inside is looked at only while it is open: its area on screen at least this
 #: fraction of the mouth's width squared.
-MOUTH_OPEN = 0.03
+MOUTH_OPEN = 0.06
 #: Bytes a RemPatch adds around its image (header byte, msgpack array, seq, region name,
 #: codec, the image's length and three float32), about.
 PACKET_OVERHEAD = 40
@@ -196,6 +197,7 @@ class RemEncoder:
         rasteriser = UvRasteriser(layout.triangles, layout.uvs, layout.patch_size)
         self._triangles = layout.triangles
         self._samplers: dict[str, tuple[sp.csr_matrix, np.ndarray, np.ndarray]] = {}
+        self._fill = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         for name in layout.names:
             box = layout.boxes[name]
             grid = np.s_[box.y : box.y + box.height, box.x : box.x + box.width]
@@ -211,6 +213,21 @@ class RemEncoder:
                 shape=(k, len(layout.uvs)),
             )
             self._samplers[name] = (matrix, covered, tri[covered])
+            if name == MOUTH_INTERIOR:
+                # Texels outside the mouth's lens-shaped strip take the nearest one inside it
+                # (cheap to code; bilinear sampling at the strip's edge reads them).
+                outside = np.ones(box.width * box.height, np.uint8)
+                outside[covered] = 0
+                _, labels = cv2.distanceTransformWithLabels(
+                    outside.reshape(box.height, box.width),
+                    cv2.DIST_L2,
+                    3,
+                    labelType=cv2.DIST_LABEL_PIXEL,
+                )
+                nearest = np.zeros(labels.max() + 1, np.int64)
+                nearest[labels.ravel()[covered]] = covered
+                gaps = np.flatnonzero(outside)
+                self._fill = (gaps, nearest[labels.ravel()[gaps]])
         self.states: dict[str, _Region] = {}
         for name in layout.names:
             base = _image(first_seq, self.from_texture(texture, name), None, sent=0)
@@ -227,7 +244,8 @@ class RemEncoder:
         self._refresh_all = False
         self._smallest: dict[str, int] = {}  # region -> bytes of its last patch's lowest quality
         self.counts = RemCounts()
-        self.colour: ColourStats | None = None  # the last frame's reference colour
+        self.colour: ColourStats | None = None  # the reference colour of the frame sending
+        self._cuts: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # this frame's, for it
 
     def from_texture(self, texture: np.ndarray, name: str) -> np.ndarray:
         """Region ``name`` of a (T, T, 3) texture on the patch grid."""
@@ -280,7 +298,9 @@ class RemEncoder:
         seen = flat.reshape(box.height, box.width)
         if name == MOUTH_INTERIOR:
             # Texels outside the mouth's lens-shaped strip: grown from the strip, cheap to code.
-            patch = fill_invalid(patch, seen)
+            gaps, nearest = self._fill
+            flat_patch = patch.reshape(-1, 3)
+            flat_patch[gaps] = flat_patch[nearest]
         else:
             patch[~seen] = self.states[name].current.content[~seen]
         return patch, seen
@@ -353,19 +373,24 @@ class RemEncoder:
         self.tokens = min(self.capacity, self.tokens + self.rate)
         ext = self.layout.vertices(vertices)
         mouth = ext if tracked is None else self.layout.vertices(tracked)
-        # The eyes are cut for their skin's colour even when they are not sent.
+        # The eyes are cut for their skin's colour even when they are not sent; the colour is
+        # measured only for a frame that sends something (_stats).
         wanted = self.regions + tuple(n for n in self._colour_regions if n not in self.regions)
+        shut = MOUTH_INTERIOR in wanted and not self._mouth_open(mouth)
         cuts = {
-            name: self.cut(image, mouth if name == MOUTH_INTERIOR else ext, name) for name in wanted
+            name: self.cut(image, mouth if name == MOUTH_INTERIOR else ext, name)
+            for name in wanted
+            if not (name == MOUTH_INTERIOR and shut)
         }
-        self.colour = self._colour(cuts)
+        self._cuts, self.colour = cuts, None
         candidates = []
+        pending = 0  # regions changed, ready or still settling: they share the bucket
         for name in self.regions:
-            patch, seen = cuts[name]
             state = self.states[name]
-            if name == MOUTH_INTERIOR and not self._mouth_open(mouth):
-                state.waiting = 0  # hidden: nothing to show
+            if name not in cuts:
+                state.waiting = 0  # the mouth is shut: its inside shows nothing
                 continue
+            patch, seen = cuts[name]
             score = self.change(name, patch, seen, state.current)
             # Hysteresis: a change waiting for the bucket stays one until it is sent or
             # has mostly gone again.
@@ -374,6 +399,7 @@ class RemEncoder:
                 continue
             self.counts.changed_frames[name] = self.counts.changed_frames.get(name, 0) + 1
             state.waiting += 1
+            pending += 1
             rising, state.score = score > SETTLED * state.score, score
             if rising and state.waiting < SETTLE_FRAMES:
                 continue  # a lid still closing: send where it comes to rest
@@ -382,13 +408,15 @@ class RemEncoder:
             candidates.append((state.waiting + head, score * weight, name, score))
         candidates.sort(reverse=True)
         out: list[RemPatch] = []
-        serving = {c[2] for c in candidates}
+        # Both eyes changed at once: a blink or a glance, which may spend the bytes kept for
+        # the eyes; anything else (one eye alone: mostly the light or the fit moving) only
+        # what leaves them. Each takes its share among the regions waiting (a lid still
+        # closing included: the other eye's image is due a frame later).
+        both = all(self.states[n].score >= CHANGE_FRACTION for n in self._colour_regions)
         for i, (_, _, name, score) in enumerate(candidates):
-            big = name in EYES and score >= BIG_CHANGE
-            # The bytes kept for the eyes are for eyes not served this frame; a blink or a
-            # glance may spend them, anything else only what leaves them.
-            reserve = self._eye_reserve(but=serving if big else set())
-            packet = self._send(seq, name, *cuts[name], len(candidates) - i, reserve)
+            big = name in EYES and score >= BIG_CHANGE and both
+            reserve = 0.0 if big else self._eye_reserve(set())
+            packet = self._send(seq, name, *cuts[name], pending - i, reserve)
             if packet is None:  # the rest wait their turn behind it
                 self.counts.waited += len(candidates) - i
                 break
@@ -408,21 +436,21 @@ class RemEncoder:
         to fit its share of what the bucket holds beyond ``reserve``; None, nothing spent,
         when the bucket cannot pay."""
         state = self.states[name]
-        h, s, v = self._stats()
         scores = [(self.change(name, patch, seen, img), i) for i, img in enumerate(state.choices())]
         score, i = min(scores)
         if score <= SAME_FRACTION and state.choices()[i] is not state.current:
             held = state.choices()[i]
-            packet = RemPatch.referring(seq, name, held.key, h, s, v)
-            if not self._pay(packet, repeat=False):
-                return None
+            if len(bytes(RemPatch.referring(seq, name, held.key, 0, 0, 0))) > self.tokens:
+                return None  # (the colour, float32, does not change the size)
+            packet = RemPatch.referring(seq, name, held.key, *self._stats())
+            self._pay(packet, repeat=False)
             state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
             return packet
         available = self.tokens - reserve
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
             return None
-        packet = RemPatch(seq, name, "webp", data, h, s, v)
+        packet = RemPatch(seq, name, "webp", data, *self._stats())
         if not self._pay(packet, repeat=False):
             return None
         self._hold(state, _image(seq, patch, packet))
@@ -525,6 +553,9 @@ class RemEncoder:
 
     def _stats(self) -> tuple[float, float, float]:
         """The colour a patch carries: this frame's, else the snapshot's, else none (0)."""
+        if self.colour is None and self._cuts:
+            self.colour = self._colour(self._cuts)
+            self._cuts = {}
         colour = self.colour or self.model_colour
         if colour is None:
             return (0.0, 0.0, 0.0)

@@ -272,11 +272,16 @@ class Call:
     encoder: FaceEncoder
 
 
-def in_process_call(frames: list[CapturedFrame], keep: set[int], rem: bool = True) -> Call:
-    """Both ends over ``frames`` (packets as bytes, no sockets); the pictures of ``keep``."""
-    encoder = FaceEncoder(640, 480, 30.0, rem=rem)
+def in_process_call(
+    frames: list[CapturedFrame], keep: set[int], regions: tuple[str, ...] | None = None
+) -> Call:
+    """Both ends over ``frames`` (packets as bytes, no sockets); the pictures of ``keep``;
+    the sender sends ``regions`` (default: its own choice)."""
+    encoder = FaceEncoder(640, 480, 30.0)
     snapshot = encoder.start(frames[0], seq=0)
-    assert snapshot is not None
+    assert snapshot is not None and encoder.rem is not None
+    if regions is not None:
+        encoder.rem.regions = regions
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     pictures, patches, packets = {}, [], []
     try:
@@ -333,7 +338,7 @@ def test_a_blink_shows_as_a_blink(blink_call: Call) -> None:
                 shown_at = lid_dots(blink_call.pictures[f], xy[f, up], xy[f, low], radius)
                 seen_at = lid_dots(blink_call.frames[f].image, xy[f, up], xy[f, low], radius)
                 off = np.linalg.norm(np.mean(shown_at, 0) - np.mean(seen_at, 0))
-                assert off <= 1.5, (f, side, off)
+                assert off <= 2.0, (f, side, off)
     save("rem_blink_100.png", np.hstack([blink_call.frames[100].image, blink_call.pictures[100]]))
 
 
@@ -373,12 +378,29 @@ def test_a_receiver_that_asks_gets_every_region_again(bundled: list[CapturedFram
         assert p.region in sent or p.reference == 0
 
 
-def test_the_mouths_inside_goes_out_when_the_mouth_opens(blink_call: Call) -> None:
-    """Shut in the clip's first second (neutral, still): nothing of the mouth's inside; the
-    jaw open in the surprise (frames 112-150): its inside as the clip shows it."""
-    inside = [p.seq for p in blink_call.patches if p.region == MOUTH_INTERIOR]
-    assert not [s for s in inside if s < 30]
-    assert [s for s in inside if 112 <= s <= 150]
+def test_the_mouths_inside_goes_out_when_the_mouth_opens(
+    mesh: FaceMesh, bundled: list[CapturedFrame]
+) -> None:
+    """A shut mouth's inside shows nothing and is never sent, however the frame changes; the
+    clip's jaw opening in the surprise (frames 112-150) sends it as the clip shows it."""
+    call = in_process_call(bundled, keep=set(), regions=(MOUTH_INTERIOR,))
+    assert [p.seq for p in call.patches if 112 <= p.seq <= 150 and p.reference is None]
+    rem = call.encoder.rem
+    assert rem is not None
+    face = np.column_stack([320 + 30 * mesh.vertices[:, 0], 240 - 30 * mesh.vertices[:, 1]])
+    face = np.column_stack([face, -30 * mesh.vertices[:, 2]])
+    shut = face.copy()
+    inner = list(load_rig().lips.contours[-1])  # the lips meet: the inner contour flat
+    shut[inner, 1] = shut[inner, 1].mean()
+    assert not rem._mouth_open(rem.layout.vertices(shut))
+    noise = np.random.default_rng(2).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    for seq in range(200, 210):
+        assert rem.changed(seq, noise, shut, shut) == []
+    rem.tokens = rem.capacity  # not for want of bytes: opened, the same noise goes out
+    opened = shut.copy()
+    opened[[324, 318, 402, 317, 14, 87, 178, 88, 95], 1] += 25  # the lower lip drops
+    sent = [p for seq in range(210, 215) for p in rem.changed(seq, noise, opened, opened)]
+    assert [p.region for p in sent] == [MOUTH_INTERIOR]
 
 
 # --- the receive loop over real sockets ---------------------------------------------------------
