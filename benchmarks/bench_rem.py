@@ -300,7 +300,7 @@ def crops(
 
 def write_video(path: Path, outputs: list[np.ndarray], fps: float) -> None:
     h, w = outputs[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), fps, (w, h))
     for image in outputs:
         writer.write(image)
     writer.release()
@@ -379,9 +379,8 @@ def _coded(image: np.ndarray, codec: str, quality: int, scale: float) -> tuple[i
     h, w = image.shape[:2]
     small = image
     if scale != 1:
-        small = cv2.resize(
-            image, (max(2, round(w * scale)), max(2, round(h * scale))), cv2.INTER_AREA
-        )
+        size = (max(2, round(w * scale)), max(2, round(h * scale)))
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     if codec == "jpeg":
         params = [cv2.IMWRITE_JPEG_QUALITY, quality, cv2.IMWRITE_JPEG_OPTIMIZE, 1]
         ok, buf = cv2.imencode(".jpg", small, params)
@@ -389,6 +388,7 @@ def _coded(image: np.ndarray, codec: str, quality: int, scale: float) -> tuple[i
         ok, buf = cv2.imencode(".webp", small, [cv2.IMWRITE_WEBP_QUALITY, quality])
     assert ok
     out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    assert out is not None
     if scale != 1:
         out = cv2.resize(out, (w, h), interpolation=cv2.INTER_LINEAR)
     return len(buf), out
@@ -445,10 +445,22 @@ def bench_codecs(path: Path, frames: int | None) -> None:
                 step = np.abs((train - mean) @ basis.T).max(axis=0) / 127 + 1e-9
                 rebuilt = np.clip(np.round(c / step) * step @ basis + mean, 0, 255)
                 db = np.mean([_psnr(a, b) for a, b in zip(x[learn:], rebuilt, strict=True)])
+                blink = ""
+                if path.resolve() == demo_clip_path().resolve() and region in ("eye_right",):
+                    # The clip's first blink (frames 98-102; patch i is frame i + 1).
+                    at = [f - 1 - learn for f in range(98, 103)]
+                    worst = min(_psnr(x[learn + i], rebuilt[i]) for i in at)
+                    webp = min(
+                        _psnr(stack[learn + i], _coded(stack[learn + i], "webp", 10, 1)[1])
+                        for i in at
+                    )
+                    blink = f" (first blink: {worst:.1f} dB; WebP q10 there {webp:.1f})"
                 basis_png = len(
                     cv2.imencode(".png", np.clip(basis * 127 + 128, 0, 255).astype(np.uint8))[1]
                 )
-                cells.append(f"k={k}: {db:.1f} dB, {k} B a patch, basis {basis_png / 1024:.0f} KiB")
+                cells.append(
+                    f"k={k}: {db:.1f} dB{blink}, {k} B a patch, basis {basis_png / 1024:.0f} KiB"
+                )
             print(f"    PCA learnt on the {label}: " + "; ".join(cells))
 
 

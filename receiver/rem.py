@@ -53,7 +53,7 @@ GATE_LOW, GATE_HIGH = 6.0, 18.0
 
 def _gate(patch: np.ndarray, under: np.ndarray) -> np.ndarray:
     """(h, w) float32 in [0, 1]: where ``patch`` brings something the texture lacks."""
-    weights = np.float32([0.114, 0.587, 0.299])
+    weights = np.array([0.114, 0.587, 0.299], np.float32)
     d = np.abs((patch.astype(np.float32) - under) @ weights)
     d = cv2.GaussianBlur(d, (5, 5), 0)
     gate = np.clip((d - GATE_LOW) / (GATE_HIGH - GATE_LOW), 0.0, 1.0)
