@@ -53,7 +53,7 @@ TRANSIT_RECENT_US = 2_000_000
 AUTO_QUANTILE = 0.95
 AUTO_MARGIN_US = 2_000
 AUTO_MIN_US = 5_000
-AUTO_MAX_US = 200_000
+AUTO_MAX_US = 80_000
 #: Adaptive delay until AUTO_SAMPLES frames have shown what the network does.
 AUTO_START_US = 40_000
 AUTO_SAMPLES = 30
@@ -132,9 +132,12 @@ Step = Record | Show
 class Playout(Protocol):
     """What the receive loop needs of a playout."""
 
-    def push(self, values: FrameValues, arrival_us: int, after_gap: bool = False) -> None:
+    def push(
+        self, values: FrameValues, arrival_us: int, after_gap: bool = False, timed: bool = True
+    ) -> None:
         """A decoded frame that arrived at ``arrival_us`` (receiver's clock); ``after_gap``:
-        the chain broke since the frame pushed before it."""
+        the chain broke since the frame pushed before it; ``timed``: the arrival time is when
+        it came (not only when the loop, busy drawing, got to it)."""
 
     def poll(self, now_us: int) -> list[Step]:
         """What to do now, in order."""
@@ -188,7 +191,9 @@ class ArrivalPlayout:
     def delay_us(self) -> int:
         return 0
 
-    def push(self, values: FrameValues, arrival_us: int, after_gap: bool = False) -> None:
+    def push(
+        self, values: FrameValues, arrival_us: int, after_gap: bool = False, timed: bool = True
+    ) -> None:
         if values.seq <= self._last_seq:
             logger.debug("frame %d after frame %d: dropped", values.seq, self._last_seq)
             return
@@ -331,7 +336,9 @@ class JitterBuffer:
     def _target(self, local_us: int) -> float:
         return float(local_us - self._transit.offset - self.delay_us)
 
-    def push(self, values: FrameValues, arrival_us: int, after_gap: bool = False) -> None:
+    def push(
+        self, values: FrameValues, arrival_us: int, after_gap: bool = False, timed: bool = True
+    ) -> None:
         if values.seq <= self._last_seq:
             logger.debug("frame %d after frame %d: dropped", values.seq, self._last_seq)
             return
@@ -340,7 +347,9 @@ class JitterBuffer:
         before = self._queue[-1] if self._queue else self._current
         if before is not None and before.capture_us - RESYNC_US < capture <= before.capture_us:
             capture = before.capture_us + 1  # in frame order (unless the clock stepped back)
-        self._transit.add(arrival_us, arrival_us - capture)
+        if timed or not len(self._transit):
+            # Only arrival times that say when a frame came measure the network's spread.
+            self._transit.add(arrival_us, arrival_us - capture)
         logger.debug(
             "frame %d: stamped %+.1f ms from its grid time, capture to arrival %.1f ms "
             "(fastest %.1f), delay %.1f ms",

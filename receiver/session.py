@@ -37,6 +37,8 @@ MAX_HOLD_FRAMES = 300
 KEYFRAME_RETRY_S = 0.25
 #: While waiting for a session, how often a stop request is looked at.
 STOP_CHECK_S = 0.5
+#: A receive that blocked this long (µs) saw its packet come while it waited.
+WAITED_US = 200
 #: Time a stopped receiver gives its last message ("left") to reach the sender.
 LINGER_S = 0.5
 
@@ -332,7 +334,13 @@ def _receive_session(
             if stop():
                 return "stopped"
             try:
-                packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(now_us()) / 1e6))
+                waited_from = now_us()
+                packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(waited_from) / 1e6))
+                received = now_us()
+                # A packet that came while the loop waited is stamped when it came; one already
+                # queued (it came while a picture was drawn) only when the loop got back to it,
+                # which says little about the network: it does not count towards the spread.
+                timed = received - waited_from >= WAITED_US
                 while packet is not None and not isinstance(packet, Bye):
                     if decoder.offer(packet):  # a REM patch, drawn with its frame
                         pass
@@ -341,9 +349,8 @@ def _receive_session(
                         if values is None:
                             broken = True
                         else:
-                            arrival = now_us()
-                            playout.push(values, arrival, broken)
-                            report.arrival_ms.append((arrival - values.capture_us) / 1000.0)
+                            playout.push(values, received, broken, timed)
+                            report.arrival_ms.append((received - values.capture_us) / 1000.0)
                             broken = False
                             needed = max(needed, values.seq + 1)
                     packet = endpoint.recv(timeout_ms=0)

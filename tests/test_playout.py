@@ -14,6 +14,7 @@ import pytest
 
 from protocol.channels import FrameValues
 from receiver.playout import (
+    AUTO_MAX_US,
     AUTO_START_US,
     MAX_SLEW,
     ArrivalPlayout,
@@ -199,6 +200,20 @@ def test_the_adaptive_delay_follows_the_jitter() -> None:
     play(rough, jittered(300, 20_000), END_US)
     assert calm.delay_us < 10_000
     assert 35_000 < rough.delay_us < 45_000  # the 95th percentile of 0..40 ms, plus a margin
+    stormy = JitterBuffer(None, FRAME_US, FRAME_US)
+    play(stormy, jittered(300, 100_000), END_US)
+    assert stormy.delay_us == AUTO_MAX_US  # no more than that, whatever the network does
+
+
+def test_frames_read_late_by_a_busy_loop_do_not_widen_the_delay() -> None:
+    # Every third frame waited in the socket while a picture was drawn: its arrival time
+    # is when the loop got to it, 30 ms after it came. It says nothing of the network.
+    arrivals = jittered(300, 1_000)
+    busy = JitterBuffer(None, FRAME_US, FRAME_US)
+    for i, (arrival, values, gap) in enumerate(arrivals):
+        late = i % 3 == 1
+        busy.push(values, arrival + (30_000 if late else 0), gap, timed=not late)
+    assert busy.delay_us < 10_000
 
 
 def test_a_sender_clock_that_steps_back_is_followed() -> None:
