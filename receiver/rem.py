@@ -9,9 +9,9 @@ applies it, in frame order:
    (seed 003 section 2.3: hue shifted to the video's peak, saturation and value scaled by
    the ratio of the means), from the snapshot's own reference colour. Seed 003 moves the
    whole texture; here it is the regions and a band around them fading out over twice
-   their height (:attr:`RemMerger.scope`): on real footage the light on the eyes does not
-   tell the light on the chin, and moving the whole face cost carphone 0.9 dB of face
-   PSNR where the band costs 0.1 (BENCHMARKS.md "REM patches");
+   their height (:attr:`RemMerger.scope`): the light on the eyes does not tell the light
+   on the chin (moving the whole face: carphone's face PSNR 0.6 dB lower, its SSIM 0.004
+   higher, the other clips within 0.002; BENCHMARKS.md "REM patches");
 2. every region's latest patch, scaled up to the texture, is blended over that with its box's
    feathered weight, so no seam shows at the region's edge.
 
