@@ -90,14 +90,20 @@ def main() -> None:
     yaw, move = head_motion(clip)
     n = min(len(yaw), report.frames)
     ssim = {r: np.asarray(report.ssim[r][:n]) for r in ("face", "head")}
-    print(f"{clip.name}: {n} frames, yaw up to {np.nanmax(yaw):.0f} degrees, moves up to "
-          f"{np.nanmax(move):.2f} of the width")
+    print(
+        f"{clip.name}: {n} frames, yaw up to {np.nanmax(yaw):.0f} degrees, moves up to "
+        f"{np.nanmax(move):.2f} of the width"
+    )
     print_bins("|yaw|, degrees", yaw[:n], YAW_BINS, ssim)
     print_bins("moved, frame widths", move[:n], MOVE_BINS, ssim)
     worst = np.argsort(np.nan_to_num(ssim["head"], nan=np.inf))[:5]
-    print("worst head SSIM: " + ", ".join(
-        f"frame {i} {ssim['head'][i]:.3f} (yaw {yaw[i]:.0f}, moved {move[i]:.2f})" for i in worst
-    ))
+    print(
+        "worst head SSIM: "
+        + ", ".join(
+            f"frame {i} {ssim['head'][i]:.3f} (yaw {yaw[i]:.0f}, moved {move[i]:.2f})"
+            for i in worst
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -480,14 +480,16 @@ class CallSound:
         notify: Callable[[str], None],
         device: bool = True,
     ) -> None:
-        sink, reason = open_sink(device)
-        if reason is not None:
-            notify(reason)
+        sink, self._no_device = open_sink(device)
+        self._notify = notify  # says there is no device when sound first comes, not before
         self.playout = AudioPlayout(sink, face_latency_from(shown))
         self.first_seq = first_seq
         self.fps = fps
 
     def push(self, packet: AudioFrame | KeyFrame, arrival_us: int) -> None:
+        if self._no_device is not None and isinstance(packet, AudioFrame):
+            self._notify(self._no_device)
+            self._no_device = None
         self.playout.push(packet, arrival_us)
 
     def finish(self, output: str | Path | None) -> dict[str, Any]:

@@ -20,8 +20,9 @@ import numpy as np
 
 from protocol.channels import ChainBroken, FrameValues
 from protocol.clock import now_us
-from protocol.packets import Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
+from protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
+from receiver.audio import CallSound
 from receiver.decoder import FaceDecoder
 from receiver.interpolation import Painter
 from receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
@@ -76,6 +77,7 @@ class ReceiverReport:
     # network's jitter; the values themselves mean something only where the ends share a clock.
     arrival_ms: list[float] = field(default_factory=list)
     shown: list[tuple[int, int]] = field(default_factory=list)
+    audio: dict[str, Any] = field(default_factory=dict)  # receiver/audio.py, AudioReport
     # REM patches: received, applied (by region) and dropped (by reason), all sessions.
     rem: dict[str, Any] = field(default_factory=dict)
 
@@ -104,6 +106,7 @@ class ReceiverReport:
             "bytes_sent": dict(self.bytes_sent),
             "ended_by": self.ended_by,
             "keyframe_interval": self.keyframe_interval,
+            "audio": self.audio,
             "rem": dict(self.rem),
             "playout": {
                 "mode": self.playout,
@@ -170,6 +173,7 @@ def run_receiver(
     stop: Callable[[], bool] = _never,
     notify: Callable[[str], None] = _quiet,
     playout: PlayoutSettings | None = None,
+    sound: bool = True,
     **endpoint_options: Any,
 ) -> ReceiverReport:
     """Join the call at ``host`` and record the rebuilt frames to ``output`` (None: no file).
@@ -212,6 +216,7 @@ def run_receiver(
             if output is not None
             else None
         )
+        audio = CallSound(report.shown, snapshot.seq, snapshot.fps, notify) if sound else None
         try:
             while snapshot is not None:
                 report.sessions += 1
@@ -223,7 +228,7 @@ def run_receiver(
                 out = _Output(recorder, sink, snapshot.session_id, report)
                 before = report.frames_out
                 report.ended_by = _receive_session(
-                    endpoint, snapshot, out, report, started, stop, settings
+                    endpoint, snapshot, out, report, started, stop, settings, audio
                 )
                 frames = report.frames_out - before
                 snapshot = None
@@ -246,6 +251,8 @@ def run_receiver(
         finally:
             if recorder is not None:
                 recorder.close()  # writes the MP4's index, whatever ended the call
+            if audio is not None:
+                report.audio = audio.finish(output)
         if report.ended_by == "stopped":
             endpoint.send_stats({"left": 1.0})  # the sender may wait for another receiver
         report.malformed += endpoint.stats.malformed
@@ -316,6 +323,7 @@ def _receive_session(
     started: float,
     stop: Callable[[], bool],
     settings: PlayoutSettings,
+    audio: CallSound | None = None,
 ) -> str:
     """Rebuild, show and record one session's frames; returns why it ended."""
     decoder = FaceDecoder(snapshot)
@@ -342,6 +350,8 @@ def _receive_session(
                 # which says little about the network: it does not count towards the spread.
                 timed = received - waited_from >= WAITED_US
                 while packet is not None and not isinstance(packet, Bye):
+                    if audio is not None and isinstance(packet, (AudioFrame, KeyFrame)):
+                        audio.push(packet, now_us())
                     if decoder.offer(packet):  # a REM patch, drawn with its frame
                         pass
                     elif isinstance(packet, (KeyFrame, DeltaFrame)):

@@ -6,7 +6,7 @@
 # Does nothing when they are already there.
 set -eu
 packages="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgles2"
-[ "${1:-}" = "--test" ] && packages="$packages iproute2 docker-compose chromium"
+[ "${1:-}" = "--test" ] && packages="$packages iproute2 docker-compose chromium xvfb"
 need=""
 for pkg in $packages; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "ok installed" || need="$need $pkg"

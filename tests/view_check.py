@@ -70,22 +70,26 @@ def number(text: str) -> float:
     return float(found[0]) if found else float("nan")
 
 
-def see(shot_path: str, page: dict[str, Any]) -> Seen:
-    """The picture in one screenshot, matched against the bundled clip."""
-    shot = cv2.imread(shot_path)
-    assert shot is not None, f"cannot read the screenshot {shot_path}"
-    assert page["natural"] == list(SIZE), page  # the stream's pictures are the call's size
-    picture = _box(shot, page["picture"])
+def see_picture(picture: np.ndarray, page: dict[str, Any] | None = None) -> Seen:
+    """A (480, 640, 3) BGR picture a person sees, matched against the bundled clip."""
     assert picture.shape[1::-1] == SIZE, f"the picture is drawn at {picture.shape}: {page}"
     frames, small = _clip()
     index = int(np.abs(small - _small(picture)).mean(axis=(1, 2)).argmin())
     found, expected = track_all([picture, frames[index]])
     assert expected is not None, f"no face in the clip's frame {index}"
-    assert found is not None, f"no face in the page's picture ({shot_path})"
+    assert found is not None, "no face in the picture"
     landmark_px = float(np.median(np.linalg.norm(found[:, :2] - expected[:, :2], axis=1)))
     masks = region_masks(expected, picture.shape)
     face_ssim = frame_scores(frames[index], picture, {"face": masks["face"]})["face"][0]
-    return Seen(picture, page, index, face_ssim, landmark_px)
+    return Seen(picture, page or {}, index, face_ssim, landmark_px)
+
+
+def see(shot_path: str, page: dict[str, Any]) -> Seen:
+    """The picture in one screenshot of the page."""
+    shot = cv2.imread(shot_path)
+    assert shot is not None, f"cannot read the screenshot {shot_path}"
+    assert page["natural"] == list(SIZE), page  # the stream's pictures are the call's size
+    return see_picture(_box(shot, page["picture"]), page)
 
 
 def check_page(looks: list[dict[str, Any]], shared_clock: bool = True) -> list[Seen]:
