@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import TYPE_CHECKING, cast
@@ -170,6 +171,23 @@ class Encoded:
         return len(self.packets[0]) if self.packets else 0
 
 
+@contextmanager
+def ordinary_scheduling() -> Iterator[None]:
+    """Undo what an encoder does to the calling thread's scheduling.
+
+    Run as root, SVT-AV1 makes the thread that opens it real-time (SCHED_FIFO 99). Every
+    process started from that thread afterwards inherits it, and a real-time process whose
+    BLAS waits for its own worker threads on two cores never lets them run: the loopback call
+    that follows hung in an SVD for good.
+    """
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        if (os.sched_getscheduler(0), os.sched_getparam(0)) != (policy, param):
+            os.sched_setscheduler(0, policy, param)
+
+
 def _frame_rate(fps: float) -> Fraction:
     return Fraction(fps).limit_denominator(1001)
 
@@ -182,6 +200,17 @@ def encode(
     fps: float,
 ) -> Encoded:
     """Encode BGR frames ((h, w, 3) uint8) at ``size`` (w, h) and ``bitrate`` bit/s."""
+    with ordinary_scheduling():
+        return _encode(frames, spec, bitrate, size, fps)
+
+
+def _encode(
+    frames: Iterable[np.ndarray],
+    spec: CodecSpec,
+    bitrate: int,
+    size: tuple[int, int],
+    fps: float,
+) -> Encoded:
     import av
 
     width, height = size

@@ -1,3 +1,6 @@
+import os
+from collections.abc import Iterator
+
 import pytest
 
 from models.mesh import FaceMesh, load_canonical
@@ -7,3 +10,13 @@ from models.mesh import FaceMesh, load_canonical
 def mesh() -> FaceMesh:
     """The canonical face mesh (468 vertices)."""
     return load_canonical()
+
+
+@pytest.fixture(autouse=True)
+def ordinary_scheduling() -> Iterator[None]:
+    """A test that leaves this process real-time fails here, by name: every process the suite
+    starts afterwards would inherit it, and a real-time call on two cores can spin for good
+    (SVT-AV1 run as root did this; facewire/codecs.py undoes it)."""
+    yield
+    policy = os.sched_getscheduler(0)
+    assert policy == os.SCHED_OTHER, f"the test left the process scheduled as policy {policy}"

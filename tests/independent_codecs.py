@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from facewire.codecs import ordinary_scheduling
+
 #: The call settings, spelt out as ffmpeg options (see README, facewire bandwidth).
 SETTINGS = {
     "h264": [
@@ -126,7 +128,8 @@ def encode_decode_pyav(
     options = {k.lstrip("-").removesuffix(":v"): v for k, v in pairs}
     encoder = options.pop("c")
     out = folder / f"{codec}.{fmt}"
-    with av.open(str(out), "w", format=fmt) as container:
+    # SVT-AV1 makes the thread real-time when run as root (facewire/codecs.py).
+    with ordinary_scheduling(), av.open(str(out), "w", format=fmt) as container:
         stream = container.add_stream(encoder, rate=Fraction(fps).limit_denominator(1001))
         stream.width, stream.height, stream.pix_fmt = sw, sh, "yuv420p"
         stream.bit_rate = int(options["b"])
