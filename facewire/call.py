@@ -139,7 +139,9 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
     source.add_argument(
         "--input", metavar="FILE", help="send a video file (default: the bundled clip)"
     )
-    p.add_argument("--loop", action="store_true", help="play the file again and again")
+    p.add_argument(
+        "--loop", action="store_true", help="play the file again and again (its sound once)"
+    )
     p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
     p.add_argument(
         "--max-size",
@@ -148,6 +150,40 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
         metavar="WxH",
         help=f"scale larger inputs down to fit (default {MAX_SIZE[0]}x{MAX_SIZE[1]})",
     )
+
+
+def _sound_kbps(text: str) -> float:
+    from sender.audio import MAX_BITRATE, MIN_BITRATE
+
+    try:
+        kbps = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not MIN_BITRATE <= kbps * 1000 <= MAX_BITRATE:
+        raise argparse.ArgumentTypeError(
+            f"{kbps:g} kbit/s is outside Opus' {MIN_BITRATE // 1000}-{MAX_BITRATE // 1000}"
+        )
+    return kbps
+
+
+def add_sound_arguments(p: argparse.ArgumentParser) -> None:
+    """The sending end's sound: the file's audio track, or the microphone with a camera."""
+    sound = p.add_mutually_exclusive_group()
+    sound.add_argument(
+        "--sound-kbps",
+        type=_sound_kbps,
+        default=12.0,
+        metavar="N",
+        help="Opus bit rate of the voice, kbit/s (default 12)",
+    )
+    sound.add_argument("--no-sound", action="store_true", help="send the face alone")
+
+
+def sound_settings(args: argparse.Namespace) -> Any:
+    """AudioSettings from the options, or None for --no-sound."""
+    from sender.audio import AudioSettings
+
+    return None if args.no_sound else AudioSettings(bitrate=round(args.sound_kbps * 1000))
 
 
 @dataclass
@@ -248,6 +284,7 @@ def send(
     ``offset``: ports used from the address's PORT on (a two-way call's second direction).
     """
     from protocol.transport import SenderEndpoint
+    from sender.audio import sound_for, with_sound
     from sender.encoder import FaceEncoder
     from sender.session import restamped, run_sender, start_session, wait_until_ready
 
@@ -285,10 +322,18 @@ def send(
             source.video.resync(len(buffered))
             presence = _Presence(active=1)
             rest = _paused_while_alone(frames, source, endpoint, presence, stop, tell)
+            settings = sound_settings(args)
+            sound = None
+            if settings is not None:
+                where = source.path if source.path is not None else args.camera
+                sound = sound_for(
+                    where, source.video.is_camera, True, endpoint.publish, settings, tell
+                )
+            sent = with_sound(itertools.chain(restamped(buffered), rest), sound, source.video.fps)
             report = run_sender(
                 endpoint,
                 encoder,
-                itertools.chain(restamped(buffered), rest),
+                sent,
                 stop=stop,
                 on_stats=lambda values: presence.on_stats(values, tell),
             )
@@ -544,6 +589,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     add_address_arguments(p)
     _add_source_arguments(p)
+    add_sound_arguments(p)
     add_key_arguments(p, "a receiver's public key file, or a folder of them (repeatable)")
     _add_common(p)
     p.set_defaults(func=run_send)
@@ -571,6 +617,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     add_address_arguments(p)
     _add_source_arguments(p)
+    add_sound_arguments(p)
     p.add_argument("--record", metavar="FILE.mp4", help="record the other end")
     add_watch_arguments(p)
     _add_playout(p)

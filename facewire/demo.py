@@ -22,6 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from facewire.call import sound_settings
 from facewire.sheet import write_contact_sheet
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
@@ -138,12 +139,18 @@ def _call(
             buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
             video.resync(len(buffered))
             keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
-            sound = sound_for(
-                video.name if not video.is_camera else 0,
-                video.is_camera,
-                video.realtime,
-                endpoint.publish,
-                notify=print,
+            settings = sound_settings(args)
+            sound = (
+                sound_for(
+                    video.name if not video.is_camera else 0,
+                    video.is_camera,
+                    video.realtime,
+                    endpoint.publish,
+                    settings,
+                    notify=print,
+                )
+                if settings is not None
+                else None
             )
             sent_frames = with_sound(itertools.chain(buffered, frames), sound, video.fps)
             sender = run_sender(endpoint, encoder, _kept(sent_frames, keep))

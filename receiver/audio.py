@@ -55,6 +55,8 @@ MIN_LATENCY_US = 60_000
 WINDOW = 100
 #: Audio latency samples kept for the figures (about 3 minutes of sound).
 MAX_SAMPLES = 10_000
+#: Video frames kept to place the sound in the recording: two hours at 30 fps.
+MAX_ANCHORS = 216_000
 
 
 class AudioDecodeError(ValueError):
@@ -226,11 +228,18 @@ class _Timeline:
         self._wav.setframerate(AUDIO_RATE)
         self.start_us: int | None = None  # capture time of the first sample
         self.samples = 0
+        #: (capture µs, sample) where the written sound starts anew (a gap or an overlap
+        #: before it): each such stretch is placed in the recording on its own.
+        self.stretches: list[tuple[int, int]] = []
 
     def put(self, capture_us: int, pcm: np.ndarray) -> None:
         if self.start_us is None:
             self.start_us = capture_us
         at = round((capture_us - self.start_us) * AUDIO_RATE / 1e6)
+        if at != self.samples or not self.stretches:
+            overlap = max(self.samples - at, 0)  # kept as written, the new part after it
+            begins = capture_us + round(overlap * 1e6 / AUDIO_RATE)
+            self.stretches.append((begins, max(at, self.samples)))
         if at > self.samples:  # a pause: silence up to it
             self._wav.writeframes(np.zeros(at - self.samples, "<i2").tobytes())
             self.samples = at
@@ -274,17 +283,21 @@ class AudioPlayout:
         self._base: tuple[int, int, int] = (0, 0, 0)  # (step, its capture µs, its local due µs)
         self._missing = 0  # steps in a row without a packet
         self._stop = False
-        #: (frame seq, capture µs) of keyframes: where the recording's frames were captured.
+        #: (frame seq, capture µs) of video frames: where the recording's frames were captured.
         self.video_anchors: list[tuple[int, int]] = []
         self._thread = threading.Thread(target=self._run, name="audio-playout", daemon=True)
         self._thread.start()
 
     # --- receive side (the receive loop's thread) ------------------------------------------
 
+    def frame(self, seq: int, capture_us: int) -> None:
+        """A video frame the receiver decoded: where the recording's frame ``seq`` was taken."""
+        if len(self.video_anchors) < MAX_ANCHORS:
+            self.video_anchors.append((seq, capture_us))
+
     def push(self, packet: AudioFrame | KeyFrame, arrival_us: int | None = None) -> None:
         if isinstance(packet, KeyFrame):
-            if len(self.video_anchors) < MAX_SAMPLES:
-                self.video_anchors.append((packet.seq, packet.capture_us))
+            self.frame(packet.seq, packet.capture_us)
             return
         arrival = self._clock() if arrival_us is None else arrival_us
         with self._lock:
@@ -386,20 +399,37 @@ class AudioPlayout:
 
     def recorded(self, first_seq: int, fps: float) -> np.ndarray:
         """What was played, placed against a recording whose frame 0 is the sender's frame
-        ``first_seq``: sample 0 of the result is that frame's instant."""
+        ``first_seq``: sample 0 of the result is that frame's instant.
+
+        The recording shows frame n at (n - first_seq) / fps, but the sender captured it at
+        its own pace: a sender that falls behind stamps its frames, and the sound sent with
+        them, later and later. Each stretch of sound is placed by how late the frames
+        captured around its start were (their median over half a second), so the voice
+        stays with the lips it was sent with.
+        """
         pcm = self._timeline.read()
-        start = self._timeline.start_us
-        if start is None or not self.video_anchors:
+        stretches = self._timeline.stretches
+        if not stretches or not self.video_anchors:
             return pcm[:0]
-        # The median over keyframes: one frame's capture time may be off (the first, read
-        # before the call began, is stamped when the call begins).
-        frame0_us = float(
-            np.median([c - (seq - first_seq) * 1e6 / fps for seq, c in self.video_anchors])
+        anchors = np.array(sorted(self.video_anchors, key=lambda a: a[1]), dtype=np.float64)
+        seqs, captures = anchors[:, 0], anchors[:, 1]
+        late = captures - (seqs - first_seq) * 1e6 / fps  # each frame's capture - its place
+        half = max(1, round(fps / 4))
+        late = np.array(
+            [np.median(late[max(0, i - half) : i + half + 1]) for i in range(len(late))]
         )
-        shift = round((start - frame0_us) * AUDIO_RATE / 1e6)
-        if shift >= 0:
-            return np.concatenate([np.zeros(shift, np.int16), pcm])
-        return pcm[-shift:]
+        out = np.zeros(0, np.int16)
+        ends = [k for _, k in stretches[1:]] + [len(pcm)]
+        for (capture_us, start), end in zip(stretches, ends, strict=True):
+            place_us = capture_us - float(np.interp(capture_us, captures, late))
+            at = round(place_us * AUDIO_RATE / 1e6)
+            part = pcm[start:end]
+            if at < 0:
+                part, at = part[-at:], 0
+            if at + len(part) > len(out):
+                out = np.concatenate([out, np.zeros(at + len(part) - len(out), np.int16)])
+            out[at : at + len(part)] = part
+        return out
 
     def discard(self) -> None:
         self._timeline.path.unlink(missing_ok=True)
@@ -469,8 +499,8 @@ def read_audio(path: str | Path, rate: int = AUDIO_RATE) -> np.ndarray:
 
 
 class CallSound:
-    """The receive loop's sound: :func:`start` it with the first session, :meth:`push` it the
-    AudioFrame and KeyFrame packets, :meth:`finish` it after the recording is closed."""
+    """The receive loop's sound: :meth:`push` it the AudioFrame packets and tell it each
+    decoded :meth:`frame`; :meth:`finish` it after the recording is closed."""
 
     def __init__(
         self,
@@ -486,7 +516,10 @@ class CallSound:
         self.first_seq = first_seq
         self.fps = fps
 
-    def push(self, packet: AudioFrame | KeyFrame, arrival_us: int) -> None:
+    def frame(self, seq: int, capture_us: int) -> None:
+        self.playout.frame(seq, capture_us)
+
+    def push(self, packet: AudioFrame, arrival_us: int) -> None:
         if self._no_device is not None and isinstance(packet, AudioFrame):
             self._notify(self._no_device)
             self._no_device = None

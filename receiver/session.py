@@ -350,7 +350,7 @@ def _receive_session(
                 # which says little about the network: it does not count towards the spread.
                 timed = received - waited_from >= WAITED_US
                 while packet is not None and not isinstance(packet, Bye):
-                    if audio is not None and isinstance(packet, (AudioFrame, KeyFrame)):
+                    if audio is not None and isinstance(packet, AudioFrame):
                         audio.push(packet, now_us())
                     if decoder.offer(packet):  # a REM patch, drawn with its frame
                         pass
@@ -360,6 +360,8 @@ def _receive_session(
                             broken = True
                         else:
                             playout.push(values, received, broken, timed)
+                            if audio is not None:
+                                audio.frame(values.seq, values.capture_us)
                             report.arrival_ms.append((received - values.capture_us) / 1000.0)
                             broken = False
                             needed = max(needed, values.seq + 1)
