@@ -44,6 +44,9 @@ PAGE = """<!DOCTYPE html>
       <tr><th>latency, capture to screen</th><td id="latency">&ndash;</td></tr>
       <tr><th>frames</th><td id="frames">&ndash;</td></tr>
       <tr><th>size</th><td id="size">&ndash;</td></tr>
+      <tr><th>sound</th><td id="sound">not in this page: an MJPEG stream carries no sound.
+        It plays on the receiver's sound device and goes into its <code>--record</code>
+        file.</td></tr>
       <tbody id="kbps"><tr class="gap"><th>kbit/s received</th><td></td></tr></tbody>
     </table>
   </aside>

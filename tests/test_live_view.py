@@ -115,7 +115,14 @@ def test_page_and_figures(view: LiveView) -> None:
     status, kind, body = get(view, "/")
     assert status == 200 and kind.startswith("text/html")
     html = body.decode()
-    for element in ('id="picture"', 'src="stream.mjpg"', 'id="fps"', 'id="latency"', "kbps-"):
+    for element in (
+        'id="picture"',
+        'src="stream.mjpg"',
+        'id="fps"',
+        'id="latency"',
+        "kbps-",
+        "carries no sound",
+    ):
         assert element in html
     assert get(view, "/picture.jpg")[0] == 503  # no picture yet
     figures = json.loads(get(view, "/figures.json")[2])
