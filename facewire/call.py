@@ -566,9 +566,10 @@ def _add_playout(p: argparse.ArgumentParser) -> None:
         "--playout-delay",
         type=_playout_delay,
         metavar="MS",
-        default=None,
-        help="time the jitter buffer adds to even out the network's jitter, in ms; 0 shows "
-        "each frame as it arrives (default: auto, adapted to the jitter seen)",
+        default=0.0,
+        help="time a jitter buffer adds to even out the network's jitter, in ms, or auto "
+        "(adapted to the jitter seen, up to 80 ms); 0 (the default) shows each frame as it "
+        "arrives: the least latency",
     )
     p.add_argument(
         "--display-fps",

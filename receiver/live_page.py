@@ -23,11 +23,13 @@ PAGE = """<!DOCTYPE html>
   main { display: flex; flex-wrap: wrap; gap: 16px; align-items: flex-start; }
   #picture { display: block; max-width: min(100%, 1280px); height: auto; background: #000;
              min-width: 320px; min-height: 240px; }
-  aside { min-width: 260px; }
+  aside { min-width: 260px; max-width: 360px; }
+  #sound { text-align: left; font-size: 13px; color: #a0a0a0; }
   h1 { font-size: 17px; margin: 0 0 8px; }
   #status { margin: 0 0 12px; color: #b5bd68; }
   table { border-collapse: collapse; }
-  th { text-align: left; font-weight: normal; color: #a0a0a0; padding: 2px 16px 2px 0; }
+  th { text-align: left; font-weight: normal; color: #a0a0a0; padding: 2px 16px 2px 0;
+       white-space: nowrap; vertical-align: top; }
   td { text-align: right; font-variant-numeric: tabular-nums; padding: 2px 0; }
   tr.sum th, tr.sum td { border-top: 1px solid #555; }
   .gap th { padding-top: 12px; }
@@ -44,9 +46,8 @@ PAGE = """<!DOCTYPE html>
       <tr><th>latency, capture to screen</th><td id="latency">&ndash;</td></tr>
       <tr><th>frames</th><td id="frames">&ndash;</td></tr>
       <tr><th>size</th><td id="size">&ndash;</td></tr>
-      <tr><th>sound</th><td id="sound">not in this page: an MJPEG stream carries no sound.
-        It plays on the receiver's sound device and goes into its <code>--record</code>
-        file.</td></tr>
+      <tr><th>sound</th><td id="sound">not in this page (an MJPEG stream carries none): it
+        plays on the receiver's sound device and goes into its --record file</td></tr>
       <tbody id="kbps"><tr class="gap"><th>kbit/s received</th><td></td></tr></tbody>
     </table>
   </aside>
@@ -55,6 +56,7 @@ PAGE = """<!DOCTYPE html>
 "use strict";
 const ORDER = __CHANNELS__;
 const $ = (id) => document.getElementById(id);
+const NOT_IN_PAGE = "not in this page either (an MJPEG stream carries none)";
 
 function channelCell(name) {
   let cell = $("kbps-" + name);
@@ -82,7 +84,12 @@ function show(f) {
   for (const name of [...names, "total"]) {
     if (name in f.kbps) channelCell(name).textContent = f.kbps[name].toFixed(2);
   }
-  let status = f.events.length ? f.events[f.events.length - 1] : "waiting for a sender";
+  // The sound's own line (receiver/audio.py) belongs beside the sound, not in the status.
+  const aboutSound = (e) => e.startsWith("no sound device");
+  const heard = f.events.filter(aboutSound);
+  if (heard.length) $("sound").textContent = heard[heard.length - 1] + "; " + NOT_IN_PAGE;
+  const said = f.events.filter((e) => !aboutSound(e));
+  let status = said.length ? said[said.length - 1] : "waiting for a sender";
   if (f.age_s !== null && f.age_s > 2) {
     status += " (no new picture for " + Math.round(f.age_s) + " s)";
   }

@@ -76,12 +76,14 @@ MAX_WAIT_US = 200_000
 class PlayoutSettings:
     """How a receiver plays frames out.
 
-    delay_ms : time the jitter buffer adds, ms; None adapts it to the jitter seen; 0 draws
-        each frame as it arrives (no buffer)
+    delay_ms : time the jitter buffer adds, ms; None adapts it to the jitter seen; 0 (the
+        default) draws each frame as it arrives (no buffer). Over TCP with loss the spread
+        to cover is a lost segment's resend, beyond a conversational delay: measured, the
+        buffer cost more latency than the call may add (BENCHMARKS.md, "Playout").
     display_fps : pictures per second on screen; None is the sender's frame rate
     """
 
-    delay_ms: float | None = None
+    delay_ms: float | None = 0.0
     display_fps: float | None = None
 
     def __post_init__(self) -> None:

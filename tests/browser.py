@@ -38,7 +38,7 @@ READY = """(() => {
   const img = document.getElementById("picture");
   const frames = document.getElementById("frames");
   return img !== null && frames !== null && img.complete && img.naturalWidth > 0
-    && Number(frames.textContent) > 0;
+    && Number(frames.textContent) >= 15;  // half a second: the rates have pictures to count
 })()"""
 
 #: What the live view's page shows, read from its elements.

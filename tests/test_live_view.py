@@ -121,7 +121,7 @@ def test_page_and_figures(view: LiveView) -> None:
         'id="fps"',
         'id="latency"',
         "kbps-",
-        "carries no sound",
+        "carries none",
     ):
         assert element in html
     assert get(view, "/picture.jpg")[0] == 503  # no picture yet
