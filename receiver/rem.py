@@ -5,13 +5,12 @@ patch grid, so a patch far larger than its region is refused before a pixel is d
 then kept until the frame it belongs to is drawn. Drawing that frame (:meth:`RemMerger.due`)
 applies it, in frame order:
 
-1. when it brings another reference colour, the snapshot texture is moved to it with Eq. 2
-   (seed 003 section 2.3: hue shifted to the video's peak, saturation and value scaled by
-   the ratio of the means), from the snapshot's own reference colour. Seed 003 moves the
-   whole texture; here it is the regions and a band around them fading out over twice
-   their height (:attr:`RemMerger.scope`): the light on the eyes does not tell the light
-   on the chin (moving the whole face: carphone's face PSNR 0.6 dB lower, its SSIM 0.004
-   higher, the other clips within 0.002; BENCHMARKS.md "REM patches");
+1. when it brings another reference colour, the whole snapshot texture is moved to it with
+   Eq. 2 (seed 003 section 2.3: hue shifted to the video's peak, saturation and value scaled
+   by the ratio of the means), from the snapshot's own reference colour. Moving only the
+   regions and a band around them was tried: through the call it scored face SSIM 0.004
+   lower on carphone and 0.001 higher on akiyo and mother-daughter (BENCHMARKS.md "REM
+   patches");
 2. every region's latest patch, scaled up to the texture, is blended over that with its box's
    feathered weight, so no seam shows at the region's edge.
 
@@ -60,20 +59,6 @@ def _gate(patch: np.ndarray, under: np.ndarray) -> np.ndarray:
     return np.asarray(cv2.GaussianBlur(gate, (5, 5), 0), np.float32)
 
 
-def _scope(layout: RemLayout, size: int) -> np.ndarray:
-    """Where the texture takes on the video's colour: each region's box, fading out over
-    about twice its height (a smooth step, no edge of its own)."""
-    w = np.zeros((size, size), np.float32)
-    for box in layout.boxes.values():
-        rows, cols = box.texture_slices
-        box_mask = np.zeros_like(w)
-        box_mask[rows, cols] = 1.0
-        k = int(2 * (rows.stop - rows.start)) | 1
-        grown = cv2.dilate(box_mask, np.ones((k // 2 | 1, k // 2 | 1)))
-        w = np.maximum(w, cv2.GaussianBlur(grown, (k, k), 0))
-    return w
-
-
 class RemMerger:
     """One session's REM patches merged into its texture.
 
@@ -110,7 +95,6 @@ class RemMerger:
         self._adapted = self.base
         #: (T, T) float32 weight of the adapted texture: 1 over the regions' boxes, fading
         #: out over about twice a box's height around it.
-        self.scope = _scope(layout, texture.shape[0])
         #: The texture as drawn: adapted, with the patches in.
         self.texture = texture.copy()
         self._patches: dict[str, np.ndarray] = {}  # region -> (box at texture size) uint8
@@ -197,10 +181,7 @@ class RemMerger:
         if colour != self.colour and self.adapt_colour and self.model_colour is not None:
             assert colour is not None
             adapted = adapt(self._base_hsv, self.model_colour, colour)
-            w = self.scope[:, :, None]
-            self._adapted = np.clip(w * adapted + (1 - w) * self.base + 0.5, 0, 255).astype(
-                np.uint8
-            )
+            self._adapted = np.clip(adapted + 0.5, 0, 255).astype(np.uint8)
             self.colour = colour
         self._compose()
         return True
