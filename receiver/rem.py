@@ -180,8 +180,7 @@ class RemMerger:
             self.applied[name] += 1
         if colour != self.colour and self.adapt_colour and self.model_colour is not None:
             assert colour is not None
-            adapted = adapt(self._base_hsv, self.model_colour, colour)
-            self._adapted = np.clip(adapted + 0.5, 0, 255).astype(np.uint8)
+            self._adapted = adapt(self._base_hsv, self.model_colour, colour)
             self.colour = colour
         self._compose()
         return True
