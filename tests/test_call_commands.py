@@ -81,6 +81,8 @@ def test_call_between_two_processes_with_keys(
     report = json.loads(stats.read_text())
     assert report["frames_out"] == FRAMES and report["ended_by"] == "bye"
     assert report["malformed"] == 0 and report["sessions"] == 1
+    # A conversation wants the least latency: frames are drawn as they arrive unless asked.
+    assert report["playout"]["mode"] == "on arrival"
     assert count_frames(record) == FRAMES
     assert face_ssim(record, FRAMES) > MIN_FACE_SSIM
 
