@@ -274,7 +274,8 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
     if sound.get("packets"):
         off = sound["av_offset_ms"]
         print(
-            f"sound: {sound['played']} x 20 ms played, {sound['concealed']} concealed, "
+            f"sound ({sound['sink']}): {sound['played']} x 20 ms played, "
+            f"{sound['concealed']} concealed, "
             f"sound minus face {off['p50']:+.0f} ms (p5 {off['p5']:+.0f}, p95 {off['p95']:+.0f})"
         )
     print(
