@@ -192,6 +192,7 @@ def _frame_rate(fps: float) -> Fraction:
     return Fraction(fps).limit_denominator(1001)
 
 
+@ordinary_scheduling()
 def encode(
     frames: Iterable[np.ndarray],
     spec: CodecSpec,
@@ -200,17 +201,6 @@ def encode(
     fps: float,
 ) -> Encoded:
     """Encode BGR frames ((h, w, 3) uint8) at ``size`` (w, h) and ``bitrate`` bit/s."""
-    with ordinary_scheduling():
-        return _encode(frames, spec, bitrate, size, fps)
-
-
-def _encode(
-    frames: Iterable[np.ndarray],
-    spec: CodecSpec,
-    bitrate: int,
-    size: tuple[int, int],
-    fps: float,
-) -> Encoded:
     import av
 
     width, height = size

@@ -113,6 +113,16 @@ def run_facewire(*args: str, timeout_s: float = TIMEOUT_S) -> subprocess.Complet
     )
 
 
+def all_end_well(*processes: Facewire) -> None:
+    """Wait for each to end with status 0 (its output in the failure); kill what is left."""
+    try:
+        for process in processes:
+            assert process.wait() == 0, process.output()
+    finally:
+        for process in processes:
+            process.kill()
+
+
 def free_ports(count: int) -> int:
     """The first of ``count`` consecutive TCP ports that are free on 127.0.0.1 now."""
     for _ in range(200):

@@ -231,7 +231,7 @@ def _voice_match(recorded: np.ndarray, speech: np.ndarray) -> tuple[float, float
 def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, sound: bool) -> None:
     """``facewire send`` and ``facewire receive --record`` as a user runs them: the bundled
     clip speaks from 6 s on, and the recording carries that voice where the face says it."""
-    from cli_call import Facewire, free_ports
+    from cli_call import Facewire, all_end_well, free_ports
 
     port = free_ports(2)
     record = tmp_path / "call.mp4"
@@ -244,12 +244,7 @@ def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, sound: 
         "send", "--connect", f"tcp://127.0.0.1:{port}", "--plain", "--frames", str(frames),
         *(() if sound else ("--no-sound",)),
     )  # fmt: skip
-    try:
-        assert sender.wait() == 0, sender.output()
-        assert receiver.wait() == 0, receiver.output()
-    finally:
-        sender.kill()
-        receiver.kill()
+    all_end_well(sender, receiver)
     recorded = read_audio(record)
     if not sound:
         assert len(recorded) == 0, "--no-sound recorded sound"
