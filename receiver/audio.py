@@ -51,6 +51,13 @@ MARGIN_US = 10_000
 #: its 20 ms is read (up to 33 ms at 30 fps), so before the first packets have shown what
 #: the link does, this keeps them from being late.
 MIN_LATENCY_US = 60_000
+#: A step due this much later after its capture than the latency needs now (the first
+#: packets of a call are often slow, or stamped off the later ones' pace: the run's start
+#: then sets too long a latency for all of it) makes the run catch up, µs ...
+CATCH_UP_US = FRAME_US
+#: ... by leaving out a step this quiet (RMS, int16; about -40 dBFS): a pause between words
+#: is 20 ms shorter on the device, and the recording keeps it.
+QUIET_RMS = 330.0
 #: Recent packets (capture to arrival) and pictures (capture to screen) that set the latency.
 WINDOW = 100
 #: Audio latency samples kept for the figures (about 3 minutes of sound).
@@ -182,6 +189,7 @@ class AudioReport:
     played: int = 0  # 20 ms steps played from a packet
     concealed: int = 0  # steps the codec made up (loss, or the start of DTX silence)
     silent: int = 0  # steps of silence after CONCEAL_FRAMES
+    shortened: int = 0  # quiet steps left out on the device to bring the latency down
     late: int = 0  # packets that came after their step was played
     dropped: int = 0  # too far ahead, duplicates
     malformed: int = 0  # packets the Opus decoder refused (concealed instead)
@@ -203,6 +211,7 @@ class AudioReport:
             "played": self.played,
             "concealed": self.concealed,
             "silent": self.silent,
+            "shortened": self.shortened,
             "late": self.late,
             "dropped": self.dropped,
             "malformed": self.malformed,
@@ -350,11 +359,15 @@ class AudioPlayout:
             wait = due - self.sink.latency_us - self._clock()
             if wait > 0:
                 time.sleep(wait / 1e6)
-            self._play(step, base_capture + (step - base_step) * FRAME_US)
+            if self._play(step, base_capture + (step - base_step) * FRAME_US, due):
+                with self._lock:  # the rest of the run plays a step earlier
+                    self._base = (base_step, base_capture, base_due - FRAME_US)
 
-    def _play(self, step: int, run_us: int) -> None:
-        """Play ``step``; ``run_us`` is its capture time counted from the run's start (the
-        recording places it there, so a run is written without seams)."""
+    def _play(self, step: int, run_us: int, due_us: int | None = None) -> bool:
+        """Play ``step``, due on the device at ``due_us``; ``run_us`` is its capture time
+        counted from the run's start (the recording places it there, so a run is written
+        without seams). A quiet step due more than CATCH_UP_US later than needed is left out
+        on the device; True when it was."""
         with self._lock:
             packet = self._buffer.pop(step, None)
             self._next = step + 1
@@ -376,15 +389,25 @@ class AudioPlayout:
             else:
                 pcm = np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
                 report.silent += 1
+        shorten = (
+            packet is not None
+            and due_us is not None
+            and due_us - packet.capture_us - self._latency() > CATCH_UP_US
+            and float(np.sqrt(np.mean(pcm.astype(np.float64) ** 2))) < QUIET_RMS
+        )
+        self._timeline.put(run_us, pcm)
+        if shorten:
+            report.shortened += 1
+            return True
         self.sink.write(pcm)
         played = self._clock() + self.sink.latency_us
         face = self._face_latency()
         if packet is not None and face is not None and len(report.latency_us) < MAX_SAMPLES:
             report.latency_us.append((played - packet.capture_us, face))
-        self._timeline.put(run_us, pcm)
         with self._lock:
             if self._missing >= RESYNC_FRAMES and not self._buffer:
                 self._next = None  # a pause: the next run chooses its latency again
+        return False
 
     # --- the end ---------------------------------------------------------------------------
 

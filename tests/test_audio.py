@@ -128,6 +128,26 @@ def test_a_lost_packet_is_concealed_by_the_codec(speech) -> None:
     lost.discard()
 
 
+def test_a_run_started_too_late_catches_up_in_the_pauses(speech) -> None:
+    """The first packet stamped 80 ms after the pace of the rest (a sender's first frames,
+    stamped when the call began) sets the whole run 80 ms late; quiet steps between words are
+    left out on the device until the sound is no later than it needs to be."""
+    packets = [p for p in speech if 300 <= p.seq < 420]  # the words, with pauses between
+    first = packets[0]
+    packets[0] = AudioFrame(first.seq, first.capture_us + 80_000, first.data)
+    played = play(packets)
+    report = played.report
+    latencies = [audio for audio, _ in report.latency_us]
+    print(f"shortened {report.shortened}, latency first {latencies[0] / 1e3:.0f} ms, "
+          f"last {latencies[-1] / 1e3:.0f} ms")  # fmt: skip
+    assert latencies[1] > 130_000  # the run began 80 ms later than the 60 ms needed
+    assert 3 <= report.shortened <= 5 and 55_000 < latencies[-1] <= 60_000 + 20_000 + 5_000
+    assert report.late == 0
+    # The recording keeps every step: nothing left out there.
+    assert len(played.recorded(0, 30.0)) >= (420 - 300 - 10) * AUDIO_FRAME_SAMPLES
+    played.discard()
+
+
 def test_a_malformed_opus_packet_is_counted_and_concealed(speech) -> None:
     packets = talk(speech)[:20]
     bad = AudioFrame(packets[5].seq, packets[5].capture_us, bytes([0x4B]) + b"\xff" * 3)
