@@ -240,11 +240,17 @@ class _Timeline:
         #: (capture µs, sample) where the written sound starts anew (a gap or an overlap
         #: before it): each such stretch is placed in the recording on its own.
         self.stretches: list[tuple[int, int]] = []
+        #: (the packet's own capture stamp µs, sample) of each step written from a packet.
+        self.stamps: list[tuple[int, int]] = []
 
-    def put(self, capture_us: int, pcm: np.ndarray) -> None:
+    def put(self, capture_us: int, pcm: np.ndarray, stamp_us: int | None = None) -> None:
+        """Write ``pcm`` at ``capture_us`` on the run's clock; ``stamp_us``: the capture
+        time its packet carried (None: concealed or silence)."""
         if self.start_us is None:
             self.start_us = capture_us
         at = round((capture_us - self.start_us) * AUDIO_RATE / 1e6)
+        if stamp_us is not None and len(self.stamps) < MAX_ANCHORS:
+            self.stamps.append((stamp_us, at))
         if at != self.samples or not self.stretches:
             overlap = max(self.samples - at, 0)  # kept as written, the new part after it
             begins = capture_us + round(overlap * 1e6 / AUDIO_RATE)
@@ -395,7 +401,7 @@ class AudioPlayout:
             and due_us - packet.capture_us - self._latency() > CATCH_UP_US
             and float(np.sqrt(np.mean(pcm.astype(np.float64) ** 2))) < QUIET_RMS
         )
-        self._timeline.put(run_us, pcm)
+        self._timeline.put(run_us, pcm, packet.capture_us if packet is not None else None)
         if shorten:
             report.shortened += 1
             return True
@@ -425,10 +431,10 @@ class AudioPlayout:
         ``first_seq``: sample 0 of the result is that frame's instant.
 
         The recording shows frame n at (n - first_seq) / fps, but the sender captured it at
-        its own pace: a sender that falls behind stamps its frames, and the sound sent with
-        them, later and later. Each stretch of sound is placed by how late the frames
-        captured around its start were (their median over half a second), so the voice
-        stays with the lips it was sent with.
+        its own pace: a sender that falls behind (most of all over its first frames) stamps
+        its frames, and the sound sent with them, later. A packet's place is its stamp less
+        how late the frames captured then were; each stretch of sound is placed where its
+        packets put it (their median), so the voice stays with the lips it was sent with.
         """
         pcm = self._timeline.read()
         stretches = self._timeline.stretches
@@ -437,14 +443,20 @@ class AudioPlayout:
         anchors = np.array(sorted(self.video_anchors, key=lambda a: a[1]), dtype=np.float64)
         seqs, captures = anchors[:, 0], anchors[:, 1]
         late = captures - (seqs - first_seq) * 1e6 / fps  # each frame's capture - its place
-        half = max(1, round(fps / 4))
-        late = np.array(
-            [np.median(late[max(0, i - half) : i + half + 1]) for i in range(len(late))]
+        stamps = np.array(self._timeline.stamps, dtype=np.float64).reshape(-1, 2)
+        # Where each packet's first sample belongs in the recording, less its sample: the
+        # recording's time of the timeline's sample 0, as that packet tells it.
+        told = (
+            stamps[:, 0] - np.interp(stamps[:, 0], captures, late) - stamps[:, 1] * 1e6 / AUDIO_RATE
         )
         out = np.zeros(0, np.int16)
         ends = [k for _, k in stretches[1:]] + [len(pcm)]
         for (capture_us, start), end in zip(stretches, ends, strict=True):
-            place_us = capture_us - float(np.interp(capture_us, captures, late))
+            inside = (stamps[:, 1] >= start) & (stamps[:, 1] < end)
+            if inside.any():
+                place_us = float(np.median(told[inside])) + start * 1e6 / AUDIO_RATE
+            else:  # concealment alone: placed by its own start
+                place_us = capture_us - float(np.interp(capture_us, captures, late))
             at = round(place_us * AUDIO_RATE / 1e6)
             part = pcm[start:end]
             if at < 0:
