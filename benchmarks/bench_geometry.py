@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.face_channels import WIRE, pose_from_channels
+from models.face_channels import DEFAULT_ERROR_PX, WIRE, pose_from_channels
 from protocol.channels import ChannelDecoder, ChannelSpec
 from protocol.packets import KeyFrame, decode
 from protocol.quant import dequantise
@@ -129,7 +129,7 @@ def measure(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--input", type=Path, default=demo_clip_path())
-    parser.add_argument("--error-px", type=float, nargs="+", default=[0.5])
+    parser.add_argument("--error-px", type=float, nargs="+", default=[DEFAULT_ERROR_PX])
     parser.add_argument("--frames", type=int)
     parser.add_argument(
         "--no-smoothing", action="store_true", help="quantise the tracker's raw values"

@@ -250,7 +250,10 @@ class FaceDecoder:
         """:meth:`reconstruct` from parameters rather than a frame's values (the playout
         draws pictures between two frames this way): ``params`` (P,) wire parameters,
         ``camera`` the (3, 3) homography of :meth:`camera`."""
-        vertices = pose.apply(self.wires.deform(params))
+        return self.draw_vertices(pose.apply(self.wires.deform(params)), camera)
+
+    def draw_vertices(self, vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
+        """:meth:`draw` from the face's (n, 3) vertices in image space (pixels)."""
         outline = vertices[self._outline, :2]
         background = self.surround.warp(outline, camera)
         # The face's edge fades into the background (the snapshot frame, carried along), which
