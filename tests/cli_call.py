@@ -113,6 +113,20 @@ def run_facewire(*args: str, timeout_s: float = TIMEOUT_S) -> subprocess.Complet
     )
 
 
+def hang_up(*processes: Facewire) -> None:
+    """SIGTERM each in turn, as Ctrl-C would, and check it ended cleanly."""
+    for process in processes:
+        process.signal(signal.SIGTERM)
+        assert process.wait() == 0, process.output()
+
+
+def kill_all(*processes: Facewire | None) -> None:
+    """Whatever is still running (a test's clean-up)."""
+    for process in processes:
+        if process is not None:
+            process.kill()
+
+
 def all_end_well(*processes: Facewire) -> None:
     """Wait for each to end with status 0 (its output in the failure); kill what is left."""
     try:

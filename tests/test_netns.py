@@ -16,14 +16,13 @@ the figures (tests/view_check.py).
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import browser
 import pytest
-from cli_call import Facewire, count_frames, run_facewire
+from cli_call import Facewire, count_frames, hang_up, kill_all, run_facewire
 from netns_pair import ADDRESS_B, Netem, TwoHosts, unavailable
 from test_call_commands import MIN_FACE_SSIM, face_ssim
 from view_check import check_page
@@ -113,14 +112,9 @@ def test_live_view_in_the_receivers_namespace_shows_the_face(tmp_path: Path) -> 
             for seen in check_page(result["looks"]):
                 print(f"{seen.page['fps']} fps, {seen.page['latency']}, clip frame "
                       f"{seen.clip_frame}, face SSIM {seen.face_ssim:.3f}")  # fmt: skip
-            sender.signal(signal.SIGTERM)
-            assert sender.wait() == 0, sender.output()
-            receiver.signal(signal.SIGTERM)
-            assert receiver.wait() == 0, receiver.output()
+            hang_up(sender, receiver)
         finally:
-            for process in (sender, receiver):
-                if process is not None:
-                    process.kill()
+            kill_all(sender, receiver)
     # Both namespaces share the clock: the page's latency includes the link's delay.
     latency = min(float(look["page"]["latency"].split()[0]) for look in result["looks"])
     assert latency >= 30, result["looks"]

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
 import time
 from collections.abc import Iterator
@@ -19,7 +18,7 @@ from collections.abc import Iterator
 import av
 import numpy as np
 import pytest
-from cli_call import Facewire, free_ports
+from cli_call import Facewire, free_ports, hang_up, kill_all
 from view_check import MAX_LANDMARK_PX, MIN_FACE_SSIM, see_picture
 
 SCREEN = (1024, 768)
@@ -74,14 +73,9 @@ def test_window_shows_the_face(display: str, monkeypatch: pytest.MonkeyPatch) ->
         first = window_area(grab(display))
         time.sleep(1.0)
         second = window_area(grab(display))
-        sender.signal(signal.SIGTERM)
-        assert sender.wait() == 0, sender.output()
-        receiver.signal(signal.SIGTERM)
-        assert receiver.wait() == 0, receiver.output()
+        hang_up(sender, receiver)
     finally:
-        for process in (sender, receiver):
-            if process is not None:
-                process.kill()
+        kill_all(sender, receiver)
     assert first.shape == second.shape == (480, 640, 3)  # the window took the call's size
     for picture in (first, second):
         seen = see_picture(picture)
