@@ -179,11 +179,22 @@ def add_sound_arguments(p: argparse.ArgumentParser) -> None:
     sound.add_argument("--no-sound", action="store_true", help="send the face alone")
 
 
-def sound_settings(args: argparse.Namespace) -> Any:
-    """AudioSettings from the options, or None for --no-sound."""
-    from sender.audio import AudioSettings
+def sound_as_asked(
+    args: argparse.Namespace,
+    source: int | str | Path,
+    is_camera: bool,
+    realtime: bool,
+    publish: Callable[[Any], None],
+    notify: Callable[[str], None],
+) -> Any:
+    """The AudioSender for ``source`` at the options' bit rate; None with --no-sound, or
+    when there is no sound to send (said in one line to ``notify``)."""
+    from sender.audio import AudioSettings, sound_for
 
-    return None if args.no_sound else AudioSettings(bitrate=round(args.sound_kbps * 1000))
+    if args.no_sound:
+        return None
+    settings = AudioSettings(bitrate=round(args.sound_kbps * 1000))
+    return sound_for(source, is_camera, realtime, publish, settings, notify)
 
 
 @dataclass
@@ -284,7 +295,7 @@ def send(
     ``offset``: ports used from the address's PORT on (a two-way call's second direction).
     """
     from protocol.transport import SenderEndpoint
-    from sender.audio import sound_for, with_sound
+    from sender.audio import with_sound
     from sender.encoder import FaceEncoder
     from sender.session import restamped, run_sender, start_session, wait_until_ready
 
@@ -322,13 +333,10 @@ def send(
             source.video.resync(len(buffered))
             presence = _Presence(active=1)
             rest = _paused_while_alone(frames, source, endpoint, presence, stop, tell)
-            settings = sound_settings(args)
-            sound = None
-            if settings is not None:
-                where = source.path if source.path is not None else args.camera
-                sound = sound_for(
-                    where, source.video.is_camera, True, endpoint.publish, settings, tell
-                )
+            where = source.path if source.path is not None else args.camera
+            sound = sound_as_asked(
+                args, where, source.video.is_camera, True, endpoint.publish, tell
+            )
             sent = with_sound(itertools.chain(restamped(buffered), rest), sound, source.video.fps)
             report = run_sender(
                 endpoint,

@@ -22,14 +22,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.call import sound_settings
+from facewire.call import sound_as_asked
 from facewire.sheet import write_contact_sheet
 from protocol.clock import now_us
 from protocol.constants import CHANNELS
 from protocol.keys import write_keypair
 from protocol.transport import SenderEndpoint
 from receiver.recorder import Mp4Recorder, crop_to
-from sender.audio import sound_for, with_sound
+from sender.audio import with_sound
 from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 from sender.lift import MarkerFaceTracker
@@ -139,18 +139,13 @@ def _call(
             buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
             video.resync(len(buffered))
             keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
-            settings = sound_settings(args)
-            sound = (
-                sound_for(
-                    video.name if not video.is_camera else 0,
-                    video.is_camera,
-                    video.realtime,
-                    endpoint.publish,
-                    settings,
-                    notify=print,
-                )
-                if settings is not None
-                else None
+            sound = sound_as_asked(
+                args,
+                video.name if not video.is_camera else 0,
+                video.is_camera,
+                video.realtime,
+                endpoint.publish,
+                print,
             )
             sent_frames = with_sound(itertools.chain(buffered, frames), sound, video.fps)
             sender = run_sender(endpoint, encoder, _kept(sent_frames, keep))

@@ -369,7 +369,7 @@ class AudioPlayout:
                 with self._lock:  # the rest of the run plays a step earlier
                     self._base = (base_step, base_capture, base_due - FRAME_US)
 
-    def _play(self, step: int, run_us: int, due_us: int | None = None) -> bool:
+    def _play(self, step: int, run_us: int, due_us: int) -> bool:
         """Play ``step``, due on the device at ``due_us``; ``run_us`` is its capture time
         counted from the run's start (the recording places it there, so a run is written
         without seams). A quiet step due more than CATCH_UP_US later than needed is left out
@@ -397,7 +397,6 @@ class AudioPlayout:
                 report.silent += 1
         shorten = (
             packet is not None
-            and due_us is not None
             and due_us - packet.capture_us - self._latency() > CATCH_UP_US
             and float(np.sqrt(np.mean(pcm.astype(np.float64) ** 2))) < QUIET_RMS
         )
@@ -555,7 +554,7 @@ class CallSound:
         self.playout.frame(seq, capture_us)
 
     def push(self, packet: AudioFrame, arrival_us: int) -> None:
-        if self._no_device is not None and isinstance(packet, AudioFrame):
+        if self._no_device is not None:
             self._notify(self._no_device)
             self._no_device = None
         self.playout.push(packet, arrival_us)

@@ -93,8 +93,6 @@ class RemMerger:
         #: The video's reference colour the texture is adapted to (None: not adapted).
         self.colour: ColourStats | None = None
         self._adapted = self.base
-        #: (T, T) float32 weight of the adapted texture: 1 over the regions' boxes, fading
-        #: out over about twice a box's height around it.
         #: The texture as drawn: adapted, with the patches in.
         self.texture = texture.copy()
         self._patches: dict[str, np.ndarray] = {}  # region -> (box at texture size) uint8

@@ -13,7 +13,7 @@ import socket
 from pathlib import Path
 
 import pytest
-from cli_call import Facewire, count_frames, free_ports, run_facewire, wait_for_file
+from cli_call import Facewire, all_end_well, count_frames, free_ports, run_facewire, wait_for_file
 
 from facewire.quality import read_frames, score_frames, track_all
 from sender.capture import demo_clip_path
@@ -187,12 +187,7 @@ def test_two_way_call_ends_when_one_end_hangs_up(tmp_path: Path, keys: Path) -> 
                 name=name,
             )  # fmt: skip
         )
-    try:
-        for end in ends:
-            assert end.wait() == 0, end.output()
-    finally:
-        for end in ends:
-            end.kill()
+    all_end_well(*ends)
     alice, bob = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("alice", "bob"))
     assert alice["sent"]["frames_in"] == 60 and not alice["sent"]["stopped"]
     assert bob["received"]["frames_out"] == 60 and bob["received"]["ended_by"] == "bye"
