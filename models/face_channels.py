@@ -8,9 +8,8 @@ Both ends agree on what each channel means (docs/protocol.md section 6):
 - ``pose.translation`` (3): translation in image pixels;
 - ``wire`` (K): coefficients of the rig's wire basis (:class:`WireBasis`), in cm.
 
-The steps are chosen from the error they may cause on screen: each channel moves the face's
-vertices by at most ``error_px`` pixels RMS at the call's size, and no vertex by more than a
-few times that (see :func:`channel_steps`).
+The steps are chosen from the error they may cause on screen: each channel moves no vertex by
+more than ``error_px`` pixels at the call's size (see :func:`channel_steps`).
 """
 
 from __future__ import annotations
@@ -37,20 +36,11 @@ WIRE = "wire"
 #: is more than 0.5 + HYSTERESIS steps from the current one, so tracker jitter below that costs
 #: no bits. The quantisation error is then at most (0.5 + HYSTERESIS) steps.
 HYSTERESIS = 0.25
-#: Default per-channel error budget, px at the call's size: the RMS, over the face's vertices,
-#: of the displacement one channel's quantisation may cause (with hysteresis: see
-#: :func:`channel_steps`). The RMS, not the largest displacement, is what the picture's error
-#: follows: a step of the head's position moves every vertex, one of a wire coefficient a few.
-#: benchmarks/bench_ablation.py names quantisation the largest loss on the geometry path; with
-#: the budget split this way carphone's face loses less for fewer bits (BENCHMARKS.md, "the
-#: error budget").
-DEFAULT_ERROR_PX = 0.2
-#: ... and no vertex moves more than this many times the budget: a blink's or a lip's few
-#: vertices keep their precision.
-PEAK_FACTOR = 3.0
-#: The sender's One Euro filters (sender/channel_filter.py) count a value's speed in units that
-#: move no vertex by more than this, px: their settings were tuned in such units.
-FILTER_UNIT_PX = 0.4 / (0.5 + HYSTERESIS)
+#: Default per-channel error budget: the most one channel's quantisation moves a vertex, px.
+#: Quantisation was the step of the geometry path that lost most (benchmarks/bench_ablation.py:
+#: carphone's face SSIM 0.781 before it, 0.763 after at 0.5 px); at 0.4 px the call scores
+#: 0.763 instead of 0.755 through the real call for 1.37 kbit/s instead of 1.21.
+DEFAULT_ERROR_PX = 0.4
 
 
 @dataclass(frozen=True)
@@ -123,71 +113,28 @@ def pose_from_channels(values: dict[str, np.ndarray]) -> Pose:
     return Pose(relative @ FRONTAL, scale, np.asarray(values[POSE_TRANSLATION], np.float64))
 
 
-@dataclass(frozen=True)
-class ChannelReach:
-    """How far one unit of each channel moves the face on screen, px.
+def channel_steps(
+    face_radius_cm: float, scale_px_per_cm: float, error_px: float = DEFAULT_ERROR_PX
+) -> dict[str, float]:
+    """Quantisation steps so that each channel moves no vertex by more than ``error_px``.
 
-    rms : RMS over the face's vertices, for the channel's value that moves them most
-    peak : the most any vertex moves, for the value that moves one most
-    """
-
-    rms: dict[str, float]
-    peak: dict[str, float]
-
-
-def channel_reach(
-    vertices_cm: np.ndarray, wire_displacements_cm: np.ndarray, scale_px_per_cm: float
-) -> ChannelReach:
-    """The reach of each channel for a face at session start.
-
-    vertices_cm : (n, 3) the snapshot's mesh in the head's frame (about the pose origin)
-    wire_displacements_cm : (K, n, 3) each wire basis coefficient's unit displacement
+    face_radius_cm : largest distance of a mesh vertex from the head's pivot (the pose origin)
     scale_px_per_cm : the face's scale at session start
 
-    The view is orthographic: only x and y of a displacement move a pixel. A rotation by d
-    rad about axis a moves vertex v by d (a x v), a log-scale step d by d v, a translation
-    step d px by d px, a wire coefficient d by d times its displacement.
+    With the sender's hysteresis the error of one value is up to (0.5 + HYSTERESIS) steps:
+    a rotation step d moves a vertex r * d px, a log-scale step r * d px (r the face radius in
+    px), a translation step d px, and a wire coefficient (cm, max displacement 1 cm per unit)
+    scale * d px.
     """
-    v = np.asarray(vertices_cm, np.float64)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or not scale_px_per_cm > 0:
-        raise ValueError(f"vertices {v.shape}, scale {scale_px_per_cm}: no face to measure")
-
-    def moved(displacements: np.ndarray) -> tuple[float, float]:
-        """(RMS over vertices, largest) on screen, px, for the worst of (m, n, 3)."""
-        px = np.linalg.norm(displacements[..., :2], axis=-1) * scale_px_per_cm
-        return float(np.sqrt((px**2).mean(axis=-1)).max()), float(px.max())
-
-    axes = np.eye(3)
-    rotation = np.stack([np.cross(a, v) for a in axes])
-    wires = np.asarray(wire_displacements_cm, np.float64).reshape(-1, len(v), 3)
-    reach = {
-        POSE_ROTATION: moved(rotation),
-        POSE_SCALE: moved(v[None]),
-        POSE_TRANSLATION: (1.0, 1.0),  # in pixels already: a unit moves every vertex 1 px
-        WIRE: moved(wires),
-    }
-    return ChannelReach(
-        rms={k: r for k, (r, _) in reach.items()}, peak={k: p for k, (_, p) in reach.items()}
-    )
-
-
-def channel_steps(
-    reach: ChannelReach, error_px: float = DEFAULT_ERROR_PX, peak_factor: float = PEAK_FACTOR
-) -> dict[str, float]:
-    """Quantisation steps so that each channel moves the face's vertices by at most
-    ``error_px`` RMS and no vertex by more than ``peak_factor * error_px``.
-
-    With the sender's hysteresis the error of one value is up to (0.5 + HYSTERESIS) steps.
-    """
-    if not (error_px > 0 and peak_factor >= 1):
-        raise ValueError(f"error {error_px} must be > 0 and peak factor {peak_factor} >= 1")
+    if not (face_radius_cm > 0 and scale_px_per_cm > 0 and error_px > 0):
+        raise ValueError(
+            f"radius {face_radius_cm}, scale {scale_px_per_cm} and error {error_px} must be > 0"
+        )
     budget = error_px / (0.5 + HYSTERESIS)
+    radius_px = face_radius_cm * scale_px_per_cm
     return {
-        name: min(budget / reach.rms[name], peak_factor * budget / reach.peak[name])
-        for name in reach.rms
+        POSE_ROTATION: budget / radius_px,
+        POSE_SCALE: budget / radius_px,
+        POSE_TRANSLATION: budget,
+        WIRE: budget / scale_px_per_cm,
     }
-
-
-def filter_units(reach: ChannelReach) -> dict[str, float]:
-    """The units of :data:`FILTER_UNIT_PX` for each channel (see sender/channel_filter.py)."""
-    return {name: FILTER_UNIT_PX / peak for name, peak in reach.peak.items()}

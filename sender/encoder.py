@@ -28,9 +28,7 @@ from models.face_channels import (
     POSE_TRANSLATION,
     WIRE,
     WireBasis,
-    channel_reach,
     channel_steps,
-    filter_units,
     load_wire_basis,
     pose_channels,
     pose_from_channels,
@@ -49,7 +47,7 @@ from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.channel_filter import ChannelSmoother
-from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
+from sender.landmarks import Landmarks, LandmarkTracker
 from sender.lift import MarkerFaceTracker, MarkerFit
 from sender.rem import RemEncoder
 from sender.texture import UvRasteriser
@@ -58,16 +56,6 @@ logger = logging.getLogger(__name__)
 
 #: A keyframe every this many seconds (and whenever a receiver asks for one).
 KEYFRAME_INTERVAL_S = 4.0
-#: The background's corners may move this many face budgets (0.8 px by default, about the
-#: face's peak): at 0.5 px the camera estimate's noise alone cost 0.3 kbit/s on a still studio
-#: camera (akiyo), at 1 px 0.15.
-CAMERA_ERROR_FACTOR = 4.0
-#: The face's budget is never finer than this share of a pixel of the landmark model's input
-#: (a 192-px crop 1.5 times the face's height): finer steps code the tracker's noise, not the
-#: face. It matters for large faces only (over about 150 px high). On the bundled clip (a
-#: 223-px face, 0.30 px instead of 0.2) its ground truth gives the same marker error and blink
-#: depth for 0.3 kbit/s less (BENCHMARKS.md, "the error budget").
-TRACKER_RESOLUTION_SHARE = 0.17
 #: Texture side per pixel of the face's width in the snapshot frame (rounded up to a power of
 #: two, within MIN/MAX_TEXTURE_SIZE). Two texels a pixel keep the round trip frame -> texture
 #: -> frame sharp (carphone's face SSIM +0.004 over 1.25); below 1.25 the texture would hold
@@ -124,12 +112,10 @@ class FaceEncoder:
 
     Call :meth:`start` with frames until it returns a Snapshot (the first frame with a face),
     then :meth:`encode` for every frame. A frame where tracking fails repeats the last
-    parameters. ``error_px`` is the RMS displacement of the face's vertices that one channel's
-    quantisation may cause, in pixels at the call's size (models/face_channels.py), raised for
-    a large face to what the tracker resolves (:data:`TRACKER_RESOLUTION_SHARE`). With
-    ``smoothing`` (the default) the channel values are filtered over time before quantisation
-    (:mod:`sender.channel_filter`): the tracker's jitter is most of what would otherwise be
-    sent.
+    parameters. ``error_px`` is the most one channel's quantisation may move a vertex, in
+    pixels at the call's size. With ``smoothing`` (the default) the channel values are
+    filtered over time before quantisation (:mod:`sender.channel_filter`): the tracker's
+    jitter is most of what would otherwise be sent.
     """
 
     def __init__(
@@ -153,7 +139,6 @@ class FaceEncoder:
         # A new random id per session, so a restarted sender is told apart from the old one.
         self.session_id = secrets.randbelow(UINT32_MAX) + 1 if session_id is None else session_id
         self.error_px = error_px
-        self.budget_px = error_px
         self._pose_vertices = np.array(
             sorted({m.vertex for m in self.rig.markers_with_role("pose")}), dtype=np.int64
         )
@@ -232,15 +217,11 @@ class FaceEncoder:
         self.wires.prepare_fit()
         self.rest_params = self.wires.rest_params()
         self._projector = self.basis.projector(self.wires.matrix)
-        wire_displacements = np.stack(
-            [self.wires.displacement(self.rest_params + b) for b in self.basis.vectors]
-        )
-        reach = channel_reach(mesh.vertices, wire_displacements, pose.scale)
-        resolution = crop_from_points(points).pixel_size
-        #: The error budget this session's steps were chosen for, px (see error_px).
-        self.budget_px = max(self.error_px, TRACKER_RESOLUTION_SHARE * resolution)
-        self.steps = channel_steps(reach, self.budget_px)
-        self.steps[CAMERA] = camera_step(CAMERA_ERROR_FACTOR * self.budget_px)
+        radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
+        self.steps = channel_steps(radius, pose.scale, self.error_px)
+        # The background may move twice the face's budget: at 0.5 px its estimate's noise
+        # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
+        self.steps[CAMERA] = camera_step(2 * self.error_px)
         specs = [
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
         ] + [
@@ -256,8 +237,7 @@ class FaceEncoder:
             specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
         )
         self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
-        units = {**filter_units(reach), CAMERA: self.steps[CAMERA]}
-        self._smoother = ChannelSmoother(units) if self.smoothing else None
+        self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None
         self._depth = float(self._last_values[POSE_TRANSLATION][2] * self.steps[POSE_TRANSLATION])
         logger.info(
