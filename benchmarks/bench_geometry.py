@@ -123,6 +123,7 @@ def measure(
         **_stats("px", px),
         **_stats("raw_px", np.concatenate(raw_px)),
         "size": f"{snapshot.width}x{snapshot.height}",
+        "budget_px": encoder.budget_px,
     }
 
 
@@ -139,7 +140,8 @@ def main() -> None:
         r = measure(args.input, e, args.frames, smoothing=not args.no_smoothing)
         smoothing = "no smoothing" if args.no_smoothing else "smoothed"
         print(
-            f"{args.input.name} {r['size']}, error budget {e} px/channel, {smoothing}, "
+            f"{args.input.name} {r['size']}, error budget {e} px/channel (this face: "
+            f"{r['budget_px']:.3f} px), {smoothing}, "
             f"{r['frames']} frames: payload {r['payload_kbps']:.2f} kbit/s (headers "
             f"{r['header_kbps']:.2f}, bodies {r['body_kbps']:.2f}; {r['keyframes']} keyframes, "
             f"{r['skipped']} frames without a packet); on the wire {r['wire_kbps']:.1f} kbit/s "

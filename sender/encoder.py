@@ -47,7 +47,7 @@ from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.channel_filter import ChannelSmoother
-from sender.landmarks import Landmarks, LandmarkTracker
+from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from sender.lift import MarkerFaceTracker, MarkerFit
 from sender.rem import RemEncoder
 from sender.texture import UvRasteriser
@@ -56,6 +56,12 @@ logger = logging.getLogger(__name__)
 
 #: A keyframe every this many seconds (and whenever a receiver asks for one).
 KEYFRAME_INTERVAL_S = 4.0
+#: The face's budget is never finer than this share of a pixel of the landmark model's input
+#: (a 192-px crop 1.5 times the face's height): finer steps code the tracker's noise, not the
+#: face. It matters for large faces only (over about 150 px high at 0.4 px): the bundled
+#: clip's 223-px face gets 0.61 px, with the same marker error and blinks against its ground
+#: truth for 1.38 kbit/s instead of 1.77 (BENCHMARKS.md, "A large face's error budget").
+TRACKER_RESOLUTION_SHARE = 0.35
 #: Texture side per pixel of the face's width in the snapshot frame (rounded up to a power of
 #: two, within MIN/MAX_TEXTURE_SIZE). Two texels a pixel keep the round trip frame -> texture
 #: -> frame sharp (carphone's face SSIM +0.004 over 1.25); below 1.25 the texture would hold
@@ -113,7 +119,8 @@ class FaceEncoder:
     Call :meth:`start` with frames until it returns a Snapshot (the first frame with a face),
     then :meth:`encode` for every frame. A frame where tracking fails repeats the last
     parameters. ``error_px`` is the most one channel's quantisation may move a vertex, in
-    pixels at the call's size. With ``smoothing`` (the default) the channel values are
+    pixels at the call's size, raised for a large face to what the landmark tracker resolves
+    (:data:`TRACKER_RESOLUTION_SHARE`). With ``smoothing`` (the default) the channel values are
     filtered over time before quantisation (:mod:`sender.channel_filter`): the tracker's
     jitter is most of what would otherwise be sent.
     """
@@ -139,6 +146,7 @@ class FaceEncoder:
         # A new random id per session, so a restarted sender is told apart from the old one.
         self.session_id = secrets.randbelow(UINT32_MAX) + 1 if session_id is None else session_id
         self.error_px = error_px
+        self.budget_px = error_px
         self._pose_vertices = np.array(
             sorted({m.vertex for m in self.rig.markers_with_role("pose")}), dtype=np.int64
         )
@@ -218,10 +226,14 @@ class FaceEncoder:
         self.rest_params = self.wires.rest_params()
         self._projector = self.basis.projector(self.wires.matrix)
         radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
-        self.steps = channel_steps(radius, pose.scale, self.error_px)
+        #: The error budget this session's steps were chosen for, px (see error_px).
+        self.budget_px = max(
+            self.error_px, TRACKER_RESOLUTION_SHARE * crop_from_points(points).pixel_size
+        )
+        self.steps = channel_steps(radius, pose.scale, self.budget_px)
         # The background may move twice the face's budget: at 0.5 px its estimate's noise
         # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
-        self.steps[CAMERA] = camera_step(2 * self.error_px)
+        self.steps[CAMERA] = camera_step(2 * self.budget_px)
         specs = [
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
         ] + [

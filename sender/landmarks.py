@@ -88,9 +88,14 @@ class Crop:
     size: float
     angle: float
 
+    @property
+    def pixel_size(self) -> float:
+        """Image pixels per pixel of the landmark model's input."""
+        return self.size / INPUT_SIZE
+
     def crop_to_image(self) -> np.ndarray:
         """(2, 3) affine from OpenCV crop pixels to OpenCV image pixels."""
-        s = self.size / INPUT_SIZE
+        s = self.pixel_size
         c, si = np.cos(self.angle), np.sin(self.angle)
         a = s * np.array([[c, -si], [si, c]])
         mid = (INPUT_SIZE - 1) / 2
