@@ -357,6 +357,7 @@ def send(
         "keyframe_requests": report.keyframe_requests,
         "sender_fps": report.fps,
         "frames_untracked": encoder.frames_untracked,
+        "fit_residual": encoder.residual.summary(),
         "width": width,
         "height": height,
         "fps": source.video.fps,

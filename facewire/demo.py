@@ -193,6 +193,7 @@ def _call(
         "ended_by": report["ended_by"],
         "audio": report.get("audio", {}),
         "rem": _rem_stats(encoder, report),
+        "fit_residual": encoder.residual.summary(),
         "output": str(args.output),
     }
 
@@ -253,6 +254,13 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
         f"kbit/s: geometry {k['geometry']:.1f}  rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
         f"control {k['control']:.2f}  audio {k['audio']:.1f}  total {k['total']:.1f}"
     )
+    fit = stats.get("fit_residual") or {}
+    if fit.get("sent_px"):
+        f, sent = fit["fit_px"], fit["sent_px"]
+        print(
+            f"fit: the sent face is {sent['median']:.2f} px RMS from the tracked one "
+            f"(p90 {sent['p90']:.2f}), the wire fit alone {f['median']:.2f} (p90 {f['p90']:.2f})"
+        )
     rem = stats.get("rem") or {}
     if rem.get("patches"):
         sent, got = rem["sender"], rem.get("receiver", {})

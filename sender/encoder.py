@@ -47,6 +47,7 @@ from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.channel_filter import ChannelSmoother
+from sender.fit_residual import FitResidual
 from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from sender.lift import MarkerFaceTracker, MarkerFit
 from sender.rem import RemEncoder
@@ -172,6 +173,8 @@ class FaceEncoder:
         self.rem: RemEncoder | None = None
         #: (n, 3) the face as the last :meth:`analyse` tracked it, image space (pixels).
         self.points: np.ndarray | None = None
+        #: Per tracked frame, the wire fit's and the sent face's distance to the tracked face.
+        self.residual = FitResidual()
         self._patches: list[RemPatch] = []
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
@@ -372,9 +375,13 @@ class FaceEncoder:
             self.intended = floats
             self._last_values = self._quantise(floats, self._last_values)
         patches: list[RemPatch] = []
-        if self.rem is not None and result is not None:
+        if result is not None and self.points is not None and self.wires is not None:
             vertices = self.rebuilt_vertices(self._last_values)
-            patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
+            pose, params = result
+            fitted = pose.apply(self.wires.deform(params))
+            self.residual.add(frame.index, self.points, fitted, vertices)
+            if self.rem is not None:
+                patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
         # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
         packet, _ = self._channels.encode(
             frame.index, frame.capture_us, self._last_values, force=bool(patches)

@@ -108,6 +108,11 @@ def test_stats_file_has_the_documented_fields(call: tuple[Path, dict]) -> None:
     assert kbps["audio"] > 0 and stats["audio"]["played"] > 0
     assert kbps["total"] == pytest.approx(sum(v for k, v in kbps.items() if k != "total"))
     assert stats["malformed"] == 0 and stats["ended_by"] == "bye"
+    # The fit residual of every tracked frame: what the rig leaves and what the call sends.
+    fit = stats["fit_residual"]
+    assert fit["frames"] == FRAMES - stats["frames_untracked"] == len(fit["per_frame"])
+    assert [f[0] for f in fit["per_frame"]] == list(range(FRAMES))
+    assert 0 < fit["fit_px"]["median"] <= fit["fit_px"]["p90"] <= fit["fit_px"]["max"] < 5
 
 
 def _facewire(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
