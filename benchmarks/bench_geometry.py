@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.face_channels import DEFAULT_ERROR_PX, WIRE, pose_from_channels
+from models.face_channels import DEFAULT_ERROR_PX, LIPS, WIRE, pose_from_channels
 from protocol.channels import ChannelDecoder, ChannelSpec
 from protocol.packets import KeyFrame, decode
 from protocol.quant import dequantise
@@ -77,8 +77,12 @@ def measure(
         raw_px: list[np.ndarray] = []
         shown = None
 
+        mouth = encoder.mouth
+        assert mouth is not None
+
         def image(values: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
             model = wires.deform(encoder.rest_params + encoder.basis.params(values[WIRE]))
+            model = model + mouth.displacement(values[LIPS])
             return model, pose_from_channels(values).apply(model)[:, :2]
 
         for frame in it:
@@ -96,7 +100,7 @@ def measure(
             floats = {s.name: dequantise(shown.values[s.name], s.step) for s in specs}
             q_model, q_image = image(floats)
             meant_model, meant_image = image(encoder.intended)
-            _, raw_image = image(encoder.channel_values(*result))
+            _, raw_image = image(encoder.channel_values(*result, encoder.points))
             err_cm.append(np.linalg.norm(q_model - meant_model, axis=1))
             err_px.append(np.linalg.norm(q_image - meant_image, axis=1))
             raw_px.append(np.linalg.norm(q_image - raw_image, axis=1))

@@ -6,7 +6,9 @@ Both ends agree on what each channel means (docs/protocol.md section 6):
   (R = R_rel @ diag(1, -1, -1)), so a face looking into the camera sends zeros;
 - ``pose.scale`` (1): ln(scale), scale in pixels per cm;
 - ``pose.translation`` (3): translation in image pixels;
-- ``wire`` (K): coefficients of the rig's wire basis (:class:`WireBasis`), in cm.
+- ``wire`` (K): coefficients of the rig's wire basis (:class:`WireBasis`), in cm;
+- ``lips`` (4): the inner lips' opening the wires cannot make, in cm
+  (:mod:`models.mouth_opening`).
 
 The steps are chosen from the error they may cause on screen: each channel moves no vertex by
 more than ``error_px`` pixels at the call's size (see :func:`channel_steps`).
@@ -32,6 +34,7 @@ POSE_ROTATION = "pose.rotation"
 POSE_SCALE = "pose.scale"
 POSE_TRANSLATION = "pose.translation"
 WIRE = "wire"
+LIPS = "lips"
 #: Hysteresis of the sender's quantiser, in steps: a value moves to a new level only when it
 #: is more than 0.5 + HYSTERESIS steps from the current one, so tracker jitter below that costs
 #: no bits. The quantisation error is then at most (0.5 + HYSTERESIS) steps.
@@ -124,7 +127,7 @@ def channel_steps(
     With the sender's hysteresis the error of one value is up to (0.5 + HYSTERESIS) steps:
     a rotation step d moves a vertex r * d px, a log-scale step r * d px (r the face radius in
     px), a translation step d px, and a wire coefficient (cm, max displacement 1 cm per unit)
-    scale * d px.
+    scale * d px, and a lips value (cm, the inner lip's centre moves by it) scale * d px.
     """
     if not (face_radius_cm > 0 and scale_px_per_cm > 0 and error_px > 0):
         raise ValueError(
@@ -137,4 +140,5 @@ def channel_steps(
         POSE_SCALE: budget / radius_px,
         POSE_TRANSLATION: budget,
         WIRE: budget / scale_px_per_cm,
+        LIPS: budget / scale_px_per_cm,
     }

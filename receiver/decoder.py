@@ -3,8 +3,8 @@
 The snapshot gives the person's mesh, texture, background and channel table; the wire
 deformer is built once from that mesh and the bundled rig. Per frame: decode the channels
 (protocol.channels) -> dequantise -> wire basis coefficients to wire parameters -> wire
-deformation (seed 000, Eq. 1-3, a sparse matrix-vector product) -> head pose -> offscreen
-render over the background.
+deformation (seed 000, Eq. 1-3, a sparse matrix-vector product) -> the inner lips' opening
+(two GDEs, models/mouth_opening.py) -> head pose -> offscreen render over the background.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 
 from models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
 from models.face_channels import (
+    LIPS,
     POSE_ROTATION,
     POSE_SCALE,
     POSE_TRANSLATION,
@@ -26,6 +27,7 @@ from models.face_channels import (
     rig_hash,
 )
 from models.mesh import load_canonical
+from models.mouth_opening import LIPS_SIZE, MouthOpening
 from models.person import person_mask
 from models.pose import Pose
 from models.rem import RemLayout
@@ -87,6 +89,7 @@ class FaceDecoder:
             POSE_SCALE: 1,
             POSE_TRANSLATION: 3,
             WIRE: self.basis.size,
+            LIPS: LIPS_SIZE,
             CAMERA: CAMERA_SIZE,
         }
         got = {name: size for name, size, _ in snapshot.channels}
@@ -102,6 +105,7 @@ class FaceDecoder:
             )
         self.mesh = canonical.with_vertices(vertices)
         self.wires = WireDeformer.from_rig(vertices, self.rig)
+        self.mouth = MouthOpening(self.mesh, self.rig)
         self._rest = self.wires.rest_params()
         self.texture = _image(
             snapshot.texture, "texture", (MISSING_TEXTURE_SIZE, MISSING_TEXTURE_SIZE)
@@ -220,11 +224,17 @@ class FaceDecoder:
             raise PacketError(f"frame {values.seq}: vertices beyond {MAX_VERTEX_PX:.0f} px")
         return vertices
 
-    def parameters(self, values: FrameValues) -> tuple[Pose, np.ndarray]:
-        """Dequantised head pose and wire parameters of one frame's values."""
+    def parameters(self, values: FrameValues) -> tuple[Pose, np.ndarray, np.ndarray]:
+        """Dequantised head pose, wire parameters and inner lips' opening (``lips``) of one
+        frame's values."""
         floats = {s.name: dequantise(values.values[s.name], s.step) for s in self.specs}
         pose = pose_from_channels(floats)
-        return pose, self._rest + self.basis.params(floats[WIRE])
+        return pose, self._rest + self.basis.params(floats[WIRE]), floats[LIPS]
+
+    def model(self, params: np.ndarray, lips: np.ndarray) -> np.ndarray:
+        """(n, 3) the face in model space, cm: the wires' deformation of ``params`` with the
+        inner lips' opening ``lips`` on top (models/mouth_opening.py)."""
+        return self.wires.deform(params) + self.mouth.displacement(lips)
 
     def camera(self, values: FrameValues) -> np.ndarray:
         """(3, 3) homography of the camera's motion since the snapshot frame."""
@@ -234,8 +244,8 @@ class FaceDecoder:
 
     def image_vertices(self, values: FrameValues) -> np.ndarray:
         """(n, 3) deformed, posed vertices in the sender's image space (pixels)."""
-        pose, params = self.parameters(values)
-        return pose.apply(self.wires.deform(params))
+        pose, params, lips = self.parameters(values)
+        return pose.apply(self.model(params, lips))
 
     def reconstruct(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR rendering of one frame's values: the face over the snapshot
@@ -243,14 +253,16 @@ class FaceDecoder:
         patches of frames up to this one in its texture."""
         if self.rem is not None and self.rem.due(values.seq):
             self.renderer.set_texture(self.rem.texture)
-        pose, params = self.parameters(values)
-        return self.draw(pose, params, self.camera(values))
+        pose, params, lips = self.parameters(values)
+        return self.draw(pose, params, lips, self.camera(values))
 
-    def draw(self, pose: Pose, params: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    def draw(
+        self, pose: Pose, params: np.ndarray, lips: np.ndarray, camera: np.ndarray
+    ) -> np.ndarray:
         """:meth:`reconstruct` from parameters rather than a frame's values (the playout
         draws pictures between two frames this way): ``params`` (P,) wire parameters,
-        ``camera`` the (3, 3) homography of :meth:`camera`."""
-        return self.draw_vertices(pose.apply(self.wires.deform(params)), camera)
+        ``lips`` the inner lips' opening, ``camera`` the (3, 3) homography of :meth:`camera`."""
+        return self.draw_vertices(pose.apply(self.model(params, lips)), camera)
 
     def draw_vertices(self, vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
         """:meth:`draw` from the face's (n, 3) vertices in image space (pixels)."""

@@ -5,7 +5,8 @@ Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
 
 - the wire parameters blend feature by feature (seed 000, section 5, Fig. 4-6, through
   :func:`models.blending.blend`): the eyes' curves follow sqrt(t), the mouth's t^3 and every
-  other feature t, so eyes and mouth move on their own curves;
+  other feature t, so eyes and mouth move on their own curves; the inner lips' opening
+  follows the mouth's;
 - the head turns along the shortest arc between the two rotations (slerp) at an even rate,
   its scale changes geometrically and its position linearly: a rigid head, never a blend of
   matrices (which shears the face in a fast turn);
@@ -36,11 +37,12 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, eq=False)
 class FaceState:
-    """What one picture shows: the head's pose, (P,) wire parameters and the camera's
-    (3, 3) homography from the snapshot frame."""
+    """What one picture shows: the head's pose, (P,) wire parameters, the inner lips'
+    opening and the camera's (3, 3) homography from the snapshot frame."""
 
     pose: Pose
     wires: np.ndarray
+    lips: np.ndarray
     camera: np.ndarray
 
 
@@ -83,6 +85,7 @@ def blend_state(
     return FaceState(
         blend_pose(a.pose, b.pose, t),
         blend(a.wires, b.wires, t, groups),
+        blend(a.lips, b.lips, t, {"mouth": np.arange(len(a.lips))}),  # on the mouth's curve
         blend_camera(a.camera, b.camera, t, *size),
     )
 
@@ -107,8 +110,8 @@ class Painter:
         self._last: tuple[FrameValues, np.ndarray] | None = None
 
     def state(self, values: FrameValues) -> FaceState:
-        pose, params = self.decoder.parameters(values)
-        return FaceState(pose, params, self.decoder.camera(values))
+        pose, params, lips = self.decoder.parameters(values)
+        return FaceState(pose, params, lips, self.decoder.camera(values))
 
     def exact(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR picture of one frame, as :meth:`FaceDecoder.reconstruct`."""
@@ -125,4 +128,4 @@ class Painter:
         if t == 1.0:
             return self.exact(b)
         s = blend_state(self.state(a), self.state(b), t, self.groups, self.size)
-        return self.decoder.draw(s.pose, s.wires, s.camera)
+        return self.decoder.draw(s.pose, s.wires, s.lips, s.camera)

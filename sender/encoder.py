@@ -25,6 +25,7 @@ from models.camera import CAMERA, CAMERA_SIZE, camera_step, corners_from_homogra
 from models.face_channels import (
     DEFAULT_ERROR_PX,
     HYSTERESIS,
+    LIPS,
     POSE_TRANSLATION,
     WIRE,
     WireBasis,
@@ -35,6 +36,7 @@ from models.face_channels import (
     rig_hash,
 )
 from models.mesh import FaceMesh, load_canonical
+from models.mouth_opening import LIPS_SIZE, MouthOpening
 from models.person import person_mask
 from models.pose import Pose, estimate_pose
 from models.rem import RemLayout
@@ -153,6 +155,7 @@ class FaceEncoder:
         )
         self.session: SessionModel | None = None
         self.wires: WireDeformer | None = None
+        self.mouth: MouthOpening | None = None
         self.rest_params = np.zeros(0)
         self.steps: dict[str, float] = {}
         self._projector = np.zeros((0, 0))
@@ -226,6 +229,7 @@ class FaceEncoder:
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         self.wires.prepare_fit()
+        self.mouth = MouthOpening(mesh, self.rig)
         self.rest_params = self.wires.rest_params()
         self._projector = self.basis.projector(self.wires.matrix)
         radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
@@ -241,6 +245,7 @@ class FaceEncoder:
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
         ] + [
             ChannelSpec(WIRE, self.basis.size, self.steps[WIRE]),
+            ChannelSpec(LIPS, LIPS_SIZE, self.steps[LIPS]),
             ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
         ]
         self.camera = CameraTracker(
@@ -305,11 +310,20 @@ class FaceEncoder:
         """(K,) wire basis coefficients (cm) closest to wire parameters ``params``."""
         return np.asarray(self._projector @ (params - self.rest_params))
 
-    def channel_values(self, pose: Pose, params: np.ndarray) -> dict[str, np.ndarray]:
+    def channel_values(
+        self, pose: Pose, params: np.ndarray, points: np.ndarray | None = None
+    ) -> dict[str, np.ndarray]:
         """Float channel values of a pose and wire parameters (before quantisation), with the
-        camera's motion measured by the last :meth:`analyse`."""
+        camera's motion measured by the last :meth:`analyse`, and the inner lips' opening
+        that the wires leave on ``points`` (n, 3), the tracked face in image space (none
+        without them)."""
+        assert self.wires is not None and self.mouth is not None, "start() first"
         values = pose_channels(pose)
         values[WIRE] = self.projected(params)
+        values[LIPS] = np.zeros(LIPS_SIZE)
+        if points is not None:
+            deformed = self.wires.deform(self.rest_params + self.basis.params(values[WIRE]))
+            values[LIPS] = self.mouth.values(pose.inverse(points), deformed)
         values[CAMERA] = self._camera_shift
         return values
 
@@ -334,10 +348,11 @@ class FaceEncoder:
     def rebuilt(self, values: dict[str, np.ndarray]) -> tuple[Pose, np.ndarray]:
         """The head pose and the (n, 3) deformed face in model space (cm) that the receiver
         rebuilds from quantised channel ``values``."""
-        assert self.wires is not None, "start() first"
+        assert self.wires is not None and self.mouth is not None, "start() first"
         floats = {name: dequantise(v, self.steps[name]) for name, v in values.items()}
         params = self.rest_params + self.basis.params(floats[WIRE])
-        return pose_from_channels(floats), self.wires.deform(params)
+        opening = self.mouth.displacement(floats[LIPS])
+        return pose_from_channels(floats), self.wires.deform(params) + opening
 
     def rebuilt_vertices(self, values: dict[str, np.ndarray]) -> np.ndarray:
         """(n, 3) the face as the receiver rebuilds quantised channel ``values``, image
@@ -362,7 +377,7 @@ class FaceEncoder:
         if result is None:
             self.frames_untracked += 1  # repeat the last values
         else:
-            floats = self.channel_values(*result)
+            floats = self.channel_values(*result, self.points)
             if self._smoother is not None:
                 # Frame numbers, not capture times, time the filter: a file read faster than
                 # real time is filtered as it would be in a call.

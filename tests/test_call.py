@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from models.face_channels import WIRE, pose_from_channels
+from models.face_channels import LIPS, WIRE, pose_from_channels
 from protocol.packets import DeltaFrame, KeyFrame, PacketError, decode
 from receiver.decoder import FaceDecoder, SnapshotError
 from sender.capture import VideoSource, demo_clip_path
@@ -68,11 +68,14 @@ def call(clip: tuple[list, dict]) -> dict[str, dict[int, np.ndarray]]:
                 assert meant is not None
                 meant_params = encoder.rest_params + encoder.basis.params(meant[WIRE])
                 out["rebuilt"][f.index] = decoder.image_vertices(shown)
-                out["rebuilt_model"][f.index] = decoder.wires.deform(decoder.parameters(shown)[1])
-                out["intended"][f.index] = pose_from_channels(meant).apply(
-                    encoder.wires.deform(meant_params)
+                out["rebuilt_model"][f.index] = decoder.model(*decoder.parameters(shown)[1:])
+                # What the sender meant: its wires and the inner lips' opening, unquantised.
+                assert encoder.mouth is not None
+                meant_model = encoder.wires.deform(meant_params) + encoder.mouth.displacement(
+                    meant[LIPS]
                 )
-                out["intended_model"][f.index] = encoder.wires.deform(meant_params)
+                out["intended"][f.index] = pose_from_channels(meant).apply(meant_model)
+                out["intended_model"][f.index] = meant_model
                 out["fit"][f.index] = pose.apply(encoder.wires.deform(params))
                 # Expression alone (model space, cm): what the basis keeps of the full fit.
                 out["fit_model"][f.index] = encoder.wires.deform(params)
