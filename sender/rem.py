@@ -366,9 +366,10 @@ class RemEncoder:
         image : (h, w, 3) uint8 BGR; vertices : (n, 3) the face's vertices as the receiver
         rebuilds this frame, image space (n = the layout's face vertex count); tracked :
         (n, 3) the face as tracked in this frame, if known. The mouth's inside is cut
-        between the tracked inner lips: the rebuilt mouth opens less than the real one
-        (the wires under-shoot it), and between its lips the frame shows lip, not the
-        teeth and tongue the receiver's opening should show.
+        between the tracked inner lips: the rebuilt mouth opens a little less than the real
+        one (the lips channel's elements reach about 85 % of it, after smoothing and
+        quantisation), and between its lips the frame shows lip, not the teeth and tongue
+        the receiver's opening should show.
         """
         self.tokens = min(self.capacity, self.tokens + self.rate)
         ext = self.layout.vertices(vertices)

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from models.camera import corners_from_homography, homography_from_corners
+from models.face_channels import LIPS as LIPS_CHANNEL
 from models.face_channels import WIRE
 from models.pose import Pose
 from protocol.channels import FrameValues
@@ -52,12 +53,15 @@ def frames():
             last = decoder.decode(packet)
         shown[f.index] = last
     a = shown[NEUTRAL]
-    # The blink frame's expression with the neutral frame's head and camera: only the face
-    # moves between the two.
+    # The blink frame's expression (wires and the inner lips) with the neutral frame's head and
+    # camera: only the face moves between the two.
     b = FrameValues(
         a.seq + 1,
         a.capture_us + 33_333,
-        {name: (shown[BLINK].values[name] if name == WIRE else v) for name, v in a.values.items()},
+        {
+            name: (shown[BLINK].values[name] if name in (WIRE, LIPS_CHANNEL) else v)
+            for name, v in a.values.items()
+        },
     )
     yield decoder, a, b
     decoder.close()
@@ -66,13 +70,13 @@ def frames():
 def test_eyes_and_mouth_move_on_their_own_curves(frames) -> None:
     decoder, a, b = frames
     painter = Painter(decoder)
-    ends = [decoder.wires.deform(painter.state(v).wires) for v in (a, b)]
+    ends = [decoder.model(painter.state(v).wires, painter.state(v).lips) for v in (a, b)]
     lids = [_lid_gap(v) for v in ends]
     mouths = [_mouth_gap(v) for v in ends]
     assert lids[0] - lids[1] > 0.5 and mouths[1] - mouths[0] > 0.2  # a blink, an open jaw
     for t in (0.25, 0.5, 0.75):
         state = blend_state(painter.state(a), painter.state(b), t, painter.groups, painter.size)
-        between = decoder.wires.deform(state.wires)
+        between = decoder.model(state.wires, state.lips)
         lid = (_lid_gap(between) - lids[0]) / (lids[1] - lids[0])
         mouth = (_mouth_gap(between) - mouths[0]) / (mouths[1] - mouths[0])
         # Each lies between the two frames, on its feature's curve (other features' wires
@@ -107,6 +111,16 @@ def test_the_picture_between_shows_the_eyes_ahead_and_the_mouth_behind(frames) -
     # The ends are the frames themselves.
     assert np.array_equal(painter.between(a, b, 0.0), image_a)
     assert np.array_equal(painter.between(a, b, 1.0), image_b)
+
+
+def test_the_inner_lips_blend_on_the_mouths_curve(frames) -> None:
+    decoder, a, b = frames
+    painter = Painter(decoder)
+    start, end = painter.state(a), painter.state(b)
+    assert np.abs(end.lips - start.lips).max() > 0  # the jaw's opening moved the inner lips
+    for t in (0.25, 0.5, 0.75):
+        state = blend_state(start, end, t, painter.groups, painter.size)
+        assert state.lips == pytest.approx(start.lips + t**3 * (end.lips - start.lips))
 
 
 def test_the_head_turns_along_the_shortest_arc() -> None:
