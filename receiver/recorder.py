@@ -32,7 +32,7 @@ class Mp4Recorder:
 
     At a fixed, fine quantiser (:data:`QSCALE`): the recording is what a user keeps and what
     the benchmarks score. OpenCV's writer at its default rate cost carphone's rebuilt face
-    0.008 SSIM, this 0.002, in a file about as large at 640x480. H.264 (libx264, veryfast,
+    0.008 SSIM, this 0.002, in a file 1.3 times as large at 640x480. H.264 (libx264, veryfast,
     CRF 12) did a little better (0.0015) in smaller files, but took 4 ms a frame at 640x480
     and 12 at 1280x720, which held large calls up (BENCHMARKS.md, "The recording").
 

@@ -1,9 +1,10 @@
 """The receiver's MP4 recording, encoded on its own thread.
 
-Encoding a frame costs 1.4 ms at 640x480 and 4 ms at 1280x720 (35 ms at 3840x2160), and a
-frame that arrives after a gap is written several times (the held picture, so frame i stays
+Encoding a frame costs about 2 ms at 640x480 and 5 ms at 1280x720 (50 ms at 3840x2160), and
+a frame that arrives after a gap is written several times (the held picture, so frame i stays
 frame i). On the receive loop's thread that time adds to every later frame's latency; on a
-thread of its own (OpenCV lets go of the GIL while it encodes) it overlaps the next render.
+thread of its own (OpenCV's colour conversion and PyAV's encoder let go of the GIL) it
+overlaps the next render.
 """
 
 from __future__ import annotations
