@@ -25,6 +25,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the ca
 from cli_call import Facewire, free_ports, run_facewire  # noqa: E402
 from netns_pair import ADDRESS_B, Netem, TwoHosts, unavailable  # noqa: E402
 
+from protocol.constants import LATE_FRAME_MS  # noqa: E402
+
+FPS = 30.0  # the bundled clip's
+
 
 def call(folder: Path, frames: int, hosts: TwoHosts | None) -> dict:
     keys = folder / "keys"
@@ -59,11 +63,18 @@ def show(name: str, runs: list[dict], relayed: list[str]) -> None:
     for i, r in enumerate(runs):
         lat = r["latency_ms"]
         freezes = [length for _, length in r["freezes"]]
+        spare = r["second_path"]
+
+        def kbps(channel: str, r: dict = r) -> float:  # payload received, over the clip
+            return r["bytes_received"].get(channel, 0) * 8 / (r["frames_out"] / FPS) / 1000
+
         print(
             f"{name} run {i + 1}: {r['frames_out']} frames out ({r['ended_by']}), latency p50 "
             f"{lat['p50']:.1f} p90 {lat['p90']:.1f} p99 {lat['p99']:.1f} max {lat['max']:.1f} ms, "
             f"freezes {len(freezes)} (longest {max(freezes, default=0)} frames), "
-            f"receiver {r['receiver_fps']:.0f} fps"
+            f"receiver {r['receiver_fps']:.0f} fps; second path: {spare['late_frames']} late "
+            f"frames, {spare['saved']} frames it brought {LATE_FRAME_MS}+ ms sooner, "
+            f"{kbps('spare'):.2f} kbit/s of copies (geometry {kbps('geometry'):.2f})"
             + (f"; link {relayed[i]}" if relayed and relayed[i] else "")
         )
 

@@ -36,6 +36,7 @@ from facewire.peer import (
     sender_keys,
 )
 from facewire.watch import Watchers, add_watch_arguments, check_watch_arguments, wants_watching
+from protocol.constants import LATE_FRAMES
 
 logger = logging.getLogger(__name__)
 
@@ -202,8 +203,12 @@ class _Presence:
     """Receivers that said they are ready and have not said they left."""
 
     active: int = 0
+    lossy: bool = False  # a receiver has reported late frames
 
     def on_stats(self, values: dict[str, float], tell: Callable[[str], None]) -> None:
+        if values.get(LATE_FRAMES) and not self.lossy:
+            self.lossy = True
+            tell("the receiver sees late frames (packets lost): frames go by the second path too")
         if values.get("ready"):
             self.active += 1
             tell("a receiver joined")
@@ -432,9 +437,16 @@ def receive(
         if report.latency_ms and 0 <= min(report.latency_ms) and lat["max"] < 60_000
         else ""
     )
+    spare = report.second_path
+    second = (
+        f"; {spare['late_frames']} frames came late, the second path brought "
+        f"{spare['saved']} sooner"
+        if spare.get("late_frames") or spare.get("copies")
+        else ""
+    )
     tell(
         f"received {report.sessions} session(s), {report.frames_out} frames{recorded} "
-        f"({report.ended_by}){latency}"
+        f"({report.ended_by}){latency}{second}"
     )
     return stats
 

@@ -250,9 +250,11 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
         f"({stats['width']}x{stats['height']} at {stats['fps']:.1f} fps, "
         f"{stats['frames_untracked']} untracked, {stats['malformed']} malformed)"
     )
+    # The second path's copies (late frames asked for them) are shown only when there were any.
+    spare = f"  second path {k['spare']:.1f}" if k.get("spare") else ""
     print(
         f"kbit/s: geometry {k['geometry']:.1f}  rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
-        f"control {k['control']:.2f}  audio {k['audio']:.1f}  total {k['total']:.1f}"
+        f"control {k['control']:.2f}  audio {k['audio']:.1f}{spare}  total {k['total']:.1f}"
     )
     fit = stats.get("fit_residual") or {}
     if fit.get("sent_px"):

@@ -91,12 +91,15 @@ CHANNEL_GEOMETRY: Final = "geometry"
 CHANNEL_REM: Final = "rem"
 CHANNEL_CONTROL: Final = "control"
 CHANNEL_AUDIO: Final = "audio"
+#: Second copies of frame packets, sent over the back channel's connection (3.6).
+CHANNEL_SPARE: Final = "spare"
 CHANNELS: Final = (
     CHANNEL_SNAPSHOT,
     CHANNEL_GEOMETRY,
     CHANNEL_REM,
     CHANNEL_CONTROL,
     CHANNEL_AUDIO,
+    CHANNEL_SPARE,
 )
 
 # --- audio (docs/protocol.md, AudioFrame) -------------------------------------------------------
@@ -132,5 +135,19 @@ SNAPSHOT_MIN_INTERVAL_S: Final = 0.5
 MAX_SNAPSHOT_PEERS: Final = 256
 #: A joining receiver repeats its SnapshotRequest this often until the snapshot arrives.
 SNAPSHOT_RETRY_MS: Final = 1000
+#: A frame that reaches the receiver this much later than the fastest of the last
+#: LATE_WINDOW_S (capture to arrival) waited behind a lost TCP segment: it is late.
+LATE_FRAME_MS: Final = 50
+LATE_WINDOW_S: Final = 10.0
+#: ReceiverStats name: frames that came late since the last report (they ask for the second
+#: path), sent at most every LATE_REPORT_S.
+LATE_FRAMES: Final = "late_frames"
+LATE_REPORT_S: Final = 1.0
+#: After a receiver's last report of late frames, the sender keeps sending it a second copy of
+#: every frame packet, over the ROUTER/DEALER connection, for this long.
+SPARE_PATH_HOLD_S: Final = 30.0
+#: A frame packet whose counter was taken less than this long ago is a second copy. Counters wrap
+#: after 256 packets (8.5 s at 30 fps): the window must be shorter than that.
+COPY_WINDOW_S: Final = 4.0
 #: ZAP domain of the sender's CURVE sockets (each endpoint appends its own suffix).
 ZAP_DOMAIN: Final = "facewire"

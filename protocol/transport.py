@@ -28,6 +28,13 @@ Bounded memory: every queue is small (constants ``UPDATE_HWM``, ``BACK_CHANNEL_H
 it, so the sender's memory stays flat; it sees a gap in seq. Each peer is sent at most one
 snapshot per ``SNAPSHOT_MIN_INTERVAL_S``, and replies it has not read are dropped, not queued.
 
+The second path: TCP turns a lost segment into delay for every message behind it, so on a lossy
+link some frames come a round trip or more late. A receiver that sees late frames says so
+(ReceiverStats ``late_frames``); for SPARE_PATH_HOLD_S after its last such report the sender also
+sends it every KeyFrame and DeltaFrame over the ROUTER/DEALER connection, whose losses are
+independent of the PUB connection's. :meth:`ReceiverEndpoint.recv` passes on whichever copy of
+a frame packet comes first (by its counter) and drops the other.
+
 Rejoining: when the receiver's SUB connection drops and comes back (the sender restarted, or the
 network failed), or an update names another session (``session_id``), :meth:`recv` raises
 :class:`RejoinNeeded` until :meth:`ReceiverEndpoint.fetch_snapshot` is called again.
@@ -52,12 +59,18 @@ from typing import Self
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
+from protocol.channels import COUNTER_MOD
 from protocol.constants import (
     BACK_CHANNEL_HWM,
     CHANNEL_CONTROL,
     CHANNEL_SNAPSHOT,
+    CHANNEL_SPARE,
     CHANNELS,
+    COPY_WINDOW_S,
     HEARTBEAT_INTERVAL_S,
+    LATE_FRAME_MS,
+    LATE_FRAMES,
+    LATE_REPORT_S,
     MAX_PACKET_BYTES,
     MAX_SNAPSHOT_PEERS,
     PEER_TIMEOUT_S,
@@ -65,6 +78,7 @@ from protocol.constants import (
     SNAPSHOT_HWM,
     SNAPSHOT_MIN_INTERVAL_S,
     SNAPSHOT_RETRY_MS,
+    SPARE_PATH_HOLD_S,
     UINT32_MAX,
     UPDATE_HWM,
     ZAP_DOMAIN,
@@ -95,6 +109,8 @@ KeyFile = str | os.PathLike[str]
 SEQ_KINDS = (KeyFrame, RemPatch)
 #: Packets that travel on the PUB/SUB update channel.
 UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot, AudioFrame)
+#: Packets that may also come over the second path (ROUTER to DEALER).
+FRAME_KINDS = (KeyFrame, DeltaFrame)
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
 _MAX_DRAIN = 1000
 _HANDSHAKE_FAILED = (
@@ -120,6 +136,13 @@ class TransportStats:
     received: int = 0  # well-formed packets accepted
     malformed: int = 0  # undecodable or unexpected packets, dropped
     dropped_old: int = 0  # updates older than the snapshot's seq, dropped
+    # The second path (receiver): frames reported late, second copies dropped, and of those the
+    # ones that came LATE_FRAME_MS or more after the first, in all and when the first copy was
+    # the second path's (a frame the second path brought that much sooner).
+    late_frames: int = 0
+    copies: int = 0
+    late_copies: int = 0
+    saved: int = 0
 
 
 def _socket(
@@ -371,7 +394,10 @@ class SenderEndpoint(_Endpoint):
         self._last_publish = clock()
         self._last_probe_answer = -math.inf
         self._last_seq = 0
+        self._spare_until: dict[bytes, float] = {}  # identity -> time.monotonic() it ends
         self.snapshots_served = 0
+        #: Second copies of frame packets not sent: the peer's ROUTER queue was full.
+        self.spare_dropped = 0
         #: Snapshot requests not answered: rate limit, too many peers, or replies left unread.
         self.snapshots_refused = 0
         #: Probes not answered because a Heartbeat was published for a probe less than
@@ -427,10 +453,48 @@ class SenderEndpoint(_Endpoint):
         self.bytes_sent[packet.CHANNEL] += len(data)
         self.sizes_sent[packet.CHANNEL][len(data)] += 1
         self._last_publish = self._clock()
+        if isinstance(packet, FRAME_KINDS) and self._spare_until:
+            self._send_spare(data)
         if isinstance(packet, KeyFrame):
             self._last_seq = packet.seq
         elif isinstance(packet, DeltaFrame) and seq is not None:
             self._last_seq = seq
+
+    @property
+    def spare_peers(self) -> int:
+        """Receivers sent a second copy of each frame packet (they reported late frames)."""
+        return len(self._spare_until)
+
+    def _send_spare(self, data: bytes) -> None:
+        now = time.monotonic()
+        self._router.getsockopt(zmq.EVENTS)  # take in how far the queues were read (publish)
+        for identity, until in list(self._spare_until.items()):
+            if now >= until:
+                del self._spare_until[identity]
+                logger.info("second path closed: no late frames for %g s", SPARE_PATH_HOLD_S)
+                continue
+            try:
+                self._router.send_multipart([identity, data], zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                self.spare_dropped += 1
+                continue
+            except zmq.ZMQError as exc:
+                if exc.errno != zmq.EHOSTUNREACH:
+                    raise
+                del self._spare_until[identity]  # the peer is gone
+                continue
+            self.bytes_sent[CHANNEL_SPARE] += len(data)
+            self.sizes_sent[CHANNEL_SPARE][len(data)] += 1
+
+    def _open_spare(self, identity: bytes) -> None:
+        """Send a peer that reported late frames a second copy of each frame packet."""
+        if identity not in self._served_at:
+            return  # it has not joined: it could not use the copies
+        if identity not in self._spare_until:
+            if len(self._spare_until) >= MAX_SNAPSHOT_PEERS:
+                return
+            logger.info("second path opened: a receiver reported late frames")
+        self._spare_until[identity] = time.monotonic() + SPARE_PATH_HOLD_S
 
     def heartbeat_if_idle(self) -> bool:
         """Publish a Heartbeat if nothing was published for HEARTBEAT_INTERVAL_S; True if sent."""
@@ -503,6 +567,8 @@ class SenderEndpoint(_Endpoint):
         elif isinstance(packet, (KeyframeRequest, ReceiverStats)):
             self._accept(packet, data)
             self._inbox.append(packet)
+            if isinstance(packet, ReceiverStats) and packet.values.get(LATE_FRAMES, 0) > 0:
+                self._open_spare(identity)
         else:
             self._drop(data, f"unexpected {type(packet).__name__} on the back channel")
 
@@ -616,6 +682,7 @@ class ReceiverEndpoint(_Endpoint):
         self._sockets += self._monitors
         self._poller = zmq.Poller()
         self._poller.register(self._sub, zmq.POLLIN)
+        self._poller.register(self._dealer, zmq.POLLIN)  # the second path (frame copies)
         self._poller.register(self._monitors[0], zmq.POLLIN)
         # Subscribe first (Clone pattern), then attach the request socket.
         self._sub.setsockopt(zmq.SUBSCRIBE, b"")
@@ -639,6 +706,12 @@ class ReceiverEndpoint(_Endpoint):
         self._last_heard = clock()
         self._last_seq = 0
         self._bye = False
+        # The second path: the last frame packet's counter passed on, and when (and over which
+        # path) each counter's first copy came; late frames not reported yet.
+        self._last_counter: int | None = None
+        self._first_copy: dict[int, tuple[float, bool]] = {}
+        self._late = 0
+        self._late_reported = -math.inf
 
     @property
     def ports(self) -> tuple[int, int]:
@@ -665,6 +738,8 @@ class ReceiverEndpoint(_Endpoint):
         self._check_open()
         if self.snapshot is not None:
             self._forget()
+        self._last_counter = None
+        self._first_copy.clear()
         self._read_events()
         self._sub_dropped = False
         deadline = time.monotonic() + timeout_ms / 1000
@@ -703,6 +778,8 @@ class ReceiverEndpoint(_Endpoint):
             except PacketError as exc:
                 self._drop(data, str(exc))
                 continue
+            if isinstance(packet, FRAME_KINDS):
+                continue  # a second-path copy of the stream being left
             if not isinstance(packet, Snapshot):
                 self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
                 continue
@@ -729,17 +806,35 @@ class ReceiverEndpoint(_Endpoint):
             self._read_events()
             if self._rejoin_reason is not None:
                 raise RejoinNeeded(f"{self._rejoin_reason}; call fetch_snapshot() to rejoin")
+            self._report_late()
             try:
-                frames = self._sub.recv_multipart(zmq.NOBLOCK)
+                packet = self._update(self._sub.recv_multipart(zmq.NOBLOCK))
             except zmq.Again:
-                remaining = _ms(deadline - time.monotonic())
-                if remaining <= 0:
-                    return None
-                self._poller.poll(remaining)
-                continue
-            packet = self._update(frames)
+                try:
+                    packet = self._update(self._dealer.recv_multipart(zmq.NOBLOCK), spare=True)
+                except zmq.Again:
+                    remaining = _ms(deadline - time.monotonic())
+                    if remaining <= 0:
+                        return None
+                    self._poller.poll(remaining)
+                    continue
             if packet is not None:
                 return packet
+
+    def note_late_frame(self) -> None:
+        """Tell the sender (at most every LATE_REPORT_S) that a frame came late: it then sends
+        frame packets over the second path too. The caller judges lateness (it knows the
+        frames' capture times: receiver/lateness.py)."""
+        self.stats.late_frames += 1
+        self._late += 1
+        self._report_late()
+
+    def _report_late(self) -> None:
+        now = time.monotonic()
+        if self._late and now - self._late_reported >= LATE_REPORT_S:
+            self.send_stats({LATE_FRAMES: float(self._late)})
+            self._late = 0
+            self._late_reported = now
 
     def request_keyframe(self, seq: int) -> None:
         """Ask the sender for a keyframe; ``seq`` is the last frame decoded."""
@@ -768,11 +863,12 @@ class ReceiverEndpoint(_Endpoint):
         self.snapshot = None
         self._rejoin_reason = None
         self._bye = False
-        for _ in range(4 * UPDATE_HWM):
-            try:
-                self._sub.recv_multipart(zmq.NOBLOCK)
-            except zmq.Again:
-                break
+        for sock in (self._sub, self._dealer):
+            for _ in range(4 * UPDATE_HWM):
+                try:
+                    sock.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
 
     def _read_events(self) -> None:
         for monitor in self._monitors:
@@ -805,7 +901,37 @@ class ReceiverEndpoint(_Endpoint):
         self.sizes_received[snapshot.CHANNEL][len(data)] += 1
         self._last_heard = self._clock()
 
-    def _update(self, frames: list[bytes]) -> Packet | None:
+    def _first(self, packet: KeyFrame | DeltaFrame, spare: bool) -> bool:
+        """Whether this is the first copy of its frame packet.
+
+        A packet whose counter (5.6) was taken less than COPY_WINDOW_S ago, and is not the
+        next one (a fast sender's counter may come round within the window), is a second copy
+        and is dropped; if it came LATE_FRAME_MS or more after the first, the path it came by
+        waited for a retransmission, which counts as a late frame. A second-path copy that is
+        not the next packet is dropped too (its queue lost one, or it is behind): the PUB path
+        brings the packets in between. A KeyFrame needs nothing before it.
+        """
+        now = time.monotonic()
+        last = self._last_counter
+        next_one = last is None or packet.counter == (last + 1) % COUNTER_MOD
+        first = self._first_copy.get(packet.counter)
+        if first is not None and now - first[0] < COPY_WINDOW_S and not next_one:
+            self.stats.copies += 1
+            if now - first[0] >= LATE_FRAME_MS / 1000:
+                self.stats.late_copies += 1
+                self.stats.saved += first[1]
+                self._late += 1
+            return False
+        if spare and not next_one and not isinstance(packet, KeyFrame):
+            self.stats.copies += 1
+            return False
+        self._last_counter = packet.counter
+        self._first_copy[packet.counter] = (now, spare)
+        return True
+
+    def _update(self, frames: list[bytes], spare: bool = False) -> Packet | None:
+        """An update from SUB, or (``spare``) from DEALER after the join: a frame packet's
+        second copy, or a snapshot reply that came too late to matter."""
         data = frames[0] if len(frames) == 1 else b"".join(frames)
         if len(frames) != 1:
             self._drop(data, f"{len(frames)}-part message")
@@ -814,6 +940,12 @@ class ReceiverEndpoint(_Endpoint):
             packet = decode(data)
         except PacketError as exc:
             self._drop(data, str(exc))
+            return None
+        if spare and not isinstance(packet, FRAME_KINDS):
+            if isinstance(packet, Snapshot):
+                logger.debug("dropped a snapshot reply that came after the join")
+            else:
+                self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
             return None
         if not isinstance(packet, UPDATE_KINDS):
             self._drop(data, f"unexpected {type(packet).__name__} on the update channel")
@@ -833,6 +965,10 @@ class ReceiverEndpoint(_Endpoint):
         self._bye = isinstance(packet, Bye)
         if isinstance(packet, SEQ_KINDS) and packet.seq < self.snapshot.seq:
             self.stats.dropped_old += 1
+            return None
+        if isinstance(packet, FRAME_KINDS) and not self._first(packet, spare):
+            self.bytes_received[CHANNEL_SPARE] += len(data)
+            self.sizes_received[CHANNEL_SPARE][len(data)] += 1
             return None
         if isinstance(packet, KeyFrame):
             self._last_seq = packet.seq

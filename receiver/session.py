@@ -25,6 +25,7 @@ from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.audio import CallSound
 from receiver.decoder import FaceDecoder
 from receiver.interpolation import Painter
+from receiver.lateness import LateFrames
 from receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
 from receiver.recording import BackgroundRecorder
 from receiver.smoothness import display_figures
@@ -80,6 +81,9 @@ class ReceiverReport:
     audio: dict[str, Any] = field(default_factory=dict)  # receiver/audio.py, AudioReport
     # REM patches: received, applied (by region) and dropped (by reason), all sessions.
     rem: dict[str, Any] = field(default_factory=dict)
+    # The second path (protocol/transport.py): frames that came late, copies dropped, copies
+    # that came LATE_FRAME_MS or more after the first, and of those the frames it brought first.
+    second_path: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
@@ -108,6 +112,7 @@ class ReceiverReport:
             "keyframe_interval": self.keyframe_interval,
             "audio": self.audio,
             "rem": dict(self.rem),
+            "second_path": dict(self.second_path),
             "playout": {
                 "mode": self.playout,
                 "display_fps": self.display_fps,
@@ -256,6 +261,13 @@ def run_receiver(
         if report.ended_by == "stopped":
             endpoint.send_stats({"left": 1.0})  # the sender may wait for another receiver
         report.malformed += endpoint.stats.malformed
+        stats = endpoint.stats
+        report.second_path = {
+            "late_frames": stats.late_frames,
+            "copies": stats.copies,
+            "late_copies": stats.late_copies,
+            "saved": stats.saved,
+        }
         report.bytes_received = dict(endpoint.bytes_received)
         report.bytes_sent = dict(endpoint.bytes_sent)
         endpoint.close(linger_s=LINGER_S)
@@ -331,6 +343,7 @@ def _receive_session(
         playout = make_playout(settings, snapshot.fps)
         report.display_fps = settings.display_fps or snapshot.fps
         player = _Player(Painter(decoder), out, report, snapshot, started)
+        lateness = LateFrames()
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
         # ask for the keyframe that starts our chain.
         endpoint.send_stats({"ready": 1.0})
@@ -363,6 +376,8 @@ def _receive_session(
                             if audio is not None:
                                 audio.frame(values.seq, values.capture_us)
                             report.arrival_ms.append((received - values.capture_us) / 1000.0)
+                            if timed and lateness.late(received, values.capture_us):
+                                endpoint.note_late_frame()
                             broken = False
                             needed = max(needed, values.seq + 1)
                     packet = endpoint.recv(timeout_ms=0)

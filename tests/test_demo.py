@@ -102,7 +102,7 @@ def test_stats_file_has_the_documented_fields(call: tuple[Path, dict]) -> None:
         assert stats[key] > 0
     assert 0 < stats["latency_ms"]["p50"] <= stats["latency_ms"]["p99"]
     kbps = stats["kbps"]
-    assert set(kbps) == {"geometry", "rem", "snapshot", "control", "audio", "total"}
+    assert set(kbps) == {"geometry", "rem", "snapshot", "control", "audio", "spare", "total"}
     assert kbps["geometry"] > 0 and kbps["snapshot"] > 0
     # The bundled clip speaks (models/data/PROVENANCE.md): its voice reached the receiver.
     assert kbps["audio"] > 0 and stats["audio"]["played"] > 0
