@@ -94,7 +94,7 @@ def sweep(
     t: float,
     centre: np.ndarray,
     axis: np.ndarray,
-    n: float | Sequence[float] = 0.0,
+    n: float | Sequence[float] | np.ndarray = 0.0,
     k: float | Sequence[float] = 0.5,
     v1: np.ndarray | None = None,
     v2: np.ndarray | None = None,
@@ -104,7 +104,8 @@ def sweep(
     c1, c2 : (m, 3) corresponding contour points, cm, model space
     centre : (3,) mouth centre O; axis : (3,) mouth axis (U_z)
     n : blending parameter for r, theta and z alike, or (n_r, n_theta, n_z) (the
-        paper's n, m, k of Eq. 4-6)
+        paper's n, m, k of Eq. 4-6), or an (m, 3) array: one per point and axis (a
+        contour of its own n, :class:`MouthRig`)
     k : scaling weight for both contours, or (k1, k2) (Eq. 8; the paper used 0.5)
     v1, v2 : (m, 3) control vectors along C1 and C2 in model space, cm (their local
         components are the paper's v of Eq. 9); None means no bending
@@ -118,10 +119,18 @@ def sweep(
     c2 = _check_points("c2", c2, m)
     if not 0.0 <= t <= 1.0:
         raise ValueError(f"t must be in [0, 1], got {t}")
-    n3 = np.broadcast_to(np.asarray(n, dtype=np.float64), (3,))
+    n_arr = np.asarray(n, dtype=np.float64)
+    if n_arr.ndim == 2 and n_arr.shape != (m, 3):
+        raise ValueError(f"expected n of shape (), (3,) or ({m}, 3), got {n_arr.shape}")
     k1, k2 = np.broadcast_to(np.asarray(k, dtype=np.float64), (2,))
     frames = cylindrical_frames(c1, np.asarray(centre, dtype=np.float64), axis)
-    r = np.array([blend(t, float(x)) for x in n3])
+    if n_arr.ndim == 2:
+        if not np.all((n_arr > -1.0) & (n_arr < 1.0)):
+            raise ValueError("blending parameters n must all be in (-1, 1)")
+        a = (1.0 + n_arr) * t * t
+        r = a / (a + (1.0 - n_arr) * (1.0 - t) ** 2)
+    else:
+        r = np.array([blend(t, float(x)) for x in np.broadcast_to(n_arr, (3,))])
     # Local coordinates of B minus those of A: [C2r - C1r, C2theta, C2z - C1z].
     step = r * np.einsum("mij,mj->mi", frames, c2 - c1)
     if v1 is not None or v2 is not None:
@@ -148,7 +157,9 @@ class MouthRig:
     mesh : the face mesh at rest
     markers : {"left", "right", "top", "bottom"} -> vertex index
     contours : four closed vertex loops, outer ring, two middle rings, inner ring
-    n, k : blending and scaling parameters of :func:`sweep` (the paper used 0 and 0.5)
+    n : the blending parameter of :func:`sweep`, one for all contours or one per contour
+        (outer .. inner): a contour with a larger n moves earlier (the paper used 0)
+    k : the scaling weight of :func:`sweep` (the paper used 0.5)
     falloff : cm; mesh vertices outside the rings within this distance of a ring
         vertex follow the rings with weight (1 - (d/falloff)^2)^2
 
@@ -165,6 +176,13 @@ class MouthRig:
     displacement of their three nearest ring vertices (inverse-distance weights) times
     the falloff above, which is linear, exactly zero beyond ``falloff`` and at zero
     displacement, and also covers the extra vertices of a subdivided mesh.
+
+    The 3D control vectors of Eq. 8-9 come from the four markers too: a marker velocity (cm
+    per key frame interval) is spread around the rings by the same interpolant. With the
+    velocities at both key frames as control vectors (:meth:`between`), the lips leave one
+    key frame and reach the next at the speed the markers had there, so the in-between
+    contours join the key frames without the stop that the blending function alone makes
+    (its slope is zero at both ends).
     """
 
     def __init__(
@@ -172,7 +190,7 @@ class MouthRig:
         mesh: FaceMesh,
         markers: dict[str, int],
         contours: Sequence[Sequence[int]],
-        n: float = 0.0,
+        n: float | Sequence[float] = 0.0,
         k: float = 0.5,
         falloff: float = 1.0,
     ) -> None:
@@ -183,9 +201,11 @@ class MouthRig:
             raise ValueError(f"expected 4 lip contours (outer .. inner), got {len(contours)}")
         if not falloff > 0:
             raise ValueError(f"falloff must be > 0 cm, got {falloff}")
-        blend(0.0, n)  # validate early
+        contour_n = np.broadcast_to(np.asarray(n, dtype=np.float64), (4,))
+        for value in contour_n:
+            blend(0.0, float(value))  # validate early
         scaling_factors(0.0, k, k)
-        self.n, self.k, self.falloff = n, k, falloff
+        self.n, self.k, self.falloff = contour_n, k, falloff
         self.n_vertices = len(verts)
         self.marker_vertices = np.array([markers[m] for m in MARKER_ORDER], dtype=np.int64)
         rings = [np.asarray(c, dtype=np.int64) for c in contours]
@@ -205,6 +225,11 @@ class MouthRig:
         )
         count = np.bincount(inverse)
         alpha = np.bincount(inverse, weights=levels) / count
+        per_ring = np.concatenate(
+            [np.full(len(r), value) for r, value in zip(rings, contour_n, strict=True)]
+        )
+        # (u, 3) blending parameter of each ring vertex (a vertex on several rings: the mean).
+        self.ring_n = np.repeat((np.bincount(inverse, weights=per_ring) / count)[:, None], 3, 1)
         w = self._trig_basis(self._ellipse_angles(verts, verts[self.ring_vertices])) @ basis_inv
         # (u, 4) weights of marker_disp and of inner_disp for each ring vertex.
         self.outer_weights = (1.0 - alpha)[:, None] * w
@@ -289,6 +314,11 @@ class MouthRig:
         e = d if inner_disp is None else self._check_disp("inner_disp", inner_disp)
         return self.outer_weights @ d + self.inner_weights @ e
 
+    def control_vectors(self, velocity: np.ndarray) -> np.ndarray:
+        """(u, 3) control vectors along the rings from the (4, 3) velocities of the left,
+        top, right and bottom markers (cm per key frame interval)."""
+        return self.ring_targets(velocity)
+
     def deform(
         self,
         vertices: np.ndarray,
@@ -308,8 +338,55 @@ class MouthRig:
         c1 = v[self.ring_vertices]
         c2 = c1 + self.ring_targets(marker_disp, inner_disp)
         centre = v[self.outer_ring].mean(axis=0)
-        moved = sweep(c1, c2, t, centre, self.axis, self.n, self.k) - c1
-        out = v.copy()
+        moved = sweep(c1, c2, t, centre, self.axis, self.ring_n, self.k) - c1
+        return self._carry(v, moved)
+
+    def between(
+        self,
+        base: np.ndarray,
+        a: np.ndarray,
+        b: np.ndarray,
+        t: float,
+        before: np.ndarray | None = None,
+        control: bool = True,
+    ) -> np.ndarray:
+        """(n, 3) ``base`` with the lips on the homotopy from key frame ``a`` to ``b`` at ``t``.
+
+        base : (n, 3) the face at t by other means (blended parameters): the lip rings are
+            put on the sweep and the skin around them carried along
+        a, b : (n, 3) the face at the two key frames (their rings are C1 and C2)
+        before : (n, 3) the face at the key frame before ``a``, or None (a start: the lips
+            leave ``a`` from rest)
+        control : False sweeps without control vectors (the blending function alone)
+
+        The control vectors are the markers' velocities, from one key frame to the next: at
+        ``a`` (a - before), at ``b`` (b - a). With k = 0.5 and no per-axis n the sweep
+        leaves C1 at the first and reaches C2 at the second, so consecutive in-betweens join
+        at each key frame with the same velocity.
+        """
+        if not 0.0 <= t <= 1.0:
+            raise ValueError(f"t must be in [0, 1], got {t}")
+        arrays = [np.asarray(x, dtype=np.float64) for x in (base, a, b)]
+        if before is not None:
+            arrays.append(np.asarray(before, dtype=np.float64))
+        for x in arrays:
+            if x.shape != (self.n_vertices, 3):
+                raise ValueError(f"expected ({self.n_vertices}, 3) vertices, got {x.shape}")
+        base, a, b = arrays[:3]
+        markers, rings = self.marker_vertices, self.ring_vertices
+        v1 = v2 = None
+        if control:
+            if before is not None:
+                v1 = self.control_vectors(a[markers] - arrays[3][markers])
+            # sigma2 has slope -1 at t = 1 (k = 0.5): the end velocity enters negated.
+            v2 = -self.control_vectors(b[markers] - a[markers])
+        centre = a[self.outer_ring].mean(axis=0)
+        swept = sweep(a[rings], b[rings], t, centre, self.axis, self.ring_n, self.k, v1, v2)
+        return self._carry(base, swept - base[rings])
+
+    def _carry(self, vertices: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """``vertices`` with the rings moved by ``moved`` (u, 3), the skin around following."""
+        out = vertices.copy()
         out[self.ring_vertices] += moved
         out[self.follow_vertices] += np.einsum(
             "fk,fkj->fj", self.follow_weights, moved[self.follow_rings]

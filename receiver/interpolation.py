@@ -7,6 +7,11 @@ Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
   :func:`models.blending.blend`): the eyes' curves follow sqrt(t), the mouth's t^3 and every
   other feature t, so eyes and mouth move on their own curves; the inner lips' opening
   follows the mouth's;
+- the lips themselves, the mouth rig's four contours, go from frame a's contours to frame b's
+  on seed 003's homotopy sweep (:meth:`models.homotopy.MouthRig.between`), with the four
+  lip markers' velocities at both frames as its control vectors, and the skin around them
+  follows. On real footage this puts the lips between frames 12-41% nearer where they were
+  than the mouth's t^3 (BENCHMARKS.md, "The lips between frames");
 - the head turns along the shortest arc between the two rotations (slerp) at an even rate,
   its scale changes geometrically and its position linearly: a rigid head, never a blend of
   matrices (which shears the face in a fast turn);
@@ -26,6 +31,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from models.blending import blend
 from models.camera import corners_from_homography, homography_from_corners
+from models.homotopy import MouthRig
 from models.pose import Pose
 from protocol.channels import FrameValues
 
@@ -33,6 +39,9 @@ if TYPE_CHECKING:
     from receiver.decoder import FaceDecoder
 
 logger = logging.getLogger(__name__)
+
+#: Frames whose faces the painter keeps (the lips' control vectors look one frame back).
+KEPT_FACES = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,15 +108,19 @@ class Painter:
     """Draws a frame's own picture, or one between two frames, with one decoder.
 
     The last exact picture is kept: a frame written to the recording and then shown on
-    screen (or the reverse) is rendered once.
+    screen (or the reverse) is rendered once. The faces of the last few frames are kept too:
+    the lips' control vectors at frame a need the frame before it.
     """
 
     def __init__(self, decoder: FaceDecoder) -> None:
         self.decoder = decoder
         self.groups = decoder.wires.feature_groups()
+        self.mouth = MouthRig.from_rig(decoder.mesh, decoder.rig)
         height, width = decoder.background.shape[:2]
         self.size = (width, height)
         self._last: tuple[FrameValues, np.ndarray] | None = None
+        # seq -> (values, its face in model space once asked for) of the last frames seen.
+        self._faces: dict[int, tuple[FrameValues, np.ndarray | None]] = {}
 
     def state(self, values: FrameValues) -> FaceState:
         pose, params, lips = self.decoder.parameters(values)
@@ -117,6 +130,7 @@ class Painter:
         """(h, w, 3) uint8 BGR picture of one frame, as :meth:`FaceDecoder.reconstruct`."""
         if self._last is not None and self._last[0] is values:
             return self._last[1]
+        self._keep(values, None)
         image = self.decoder.reconstruct(values)
         self._last = (values, image)
         return image
@@ -127,5 +141,40 @@ class Painter:
             return self.exact(a)
         if t == 1.0:
             return self.exact(b)
+        pose, model, camera = self.face_between(a, b, t)
+        return self.decoder.draw_vertices(pose.apply(model), camera)
+
+    def face_between(
+        self, a: FrameValues, b: FrameValues, t: float
+    ) -> tuple[Pose, np.ndarray, np.ndarray]:
+        """The head's pose, the (n, 3) face in model space and the camera's homography a
+        fraction ``t`` of the way from frame a to frame b."""
         s = blend_state(self.state(a), self.state(b), t, self.groups, self.size)
-        return self.decoder.draw(s.pose, s.wires, s.lips, s.camera)
+        base = self.decoder.model(s.wires, s.lips)
+        model = self.mouth.between(base, self.face(a), self.face(b), t, self._before(a, b))
+        return s.pose, model, s.camera
+
+    def face(self, values: FrameValues) -> np.ndarray:
+        """(n, 3) frame ``values``' face in model space (kept for the next few frames)."""
+        kept = self._faces.get(values.seq)
+        if kept is not None and kept[0] is values and kept[1] is not None:
+            return kept[1]
+        _, params, lips = self.decoder.parameters(values)
+        model = self.decoder.model(params, lips)
+        self._keep(values, model)
+        return model
+
+    def _keep(self, values: FrameValues, model: np.ndarray | None) -> None:
+        self._faces[values.seq] = (values, model)
+        for seq in sorted(self._faces)[:-KEPT_FACES]:
+            del self._faces[seq]
+
+    def _before(self, a: FrameValues, b: FrameValues) -> np.ndarray | None:
+        """The face one interval (b - a) before frame a, from the newest kept frame before
+        it, or None if there is none near enough (a start, or after a gap)."""
+        earlier = [seq for seq in self._faces if a.seq - KEPT_FACES <= seq < a.seq]
+        if not earlier:
+            return None
+        seq = max(earlier)
+        face_a, face_before = self.face(a), self.face(self._faces[seq][0])
+        return face_a - (face_a - face_before) * ((b.seq - a.seq) / (a.seq - seq))

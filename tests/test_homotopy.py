@@ -195,3 +195,60 @@ def test_bundled_rig(mesh):
 
     rig = MouthRig.from_rig(mesh, load_rig())
     assert np.array_equal(rig.deform(mesh.vertices, np.zeros((4, 3))), mesh.vertices)
+
+
+def test_a_contour_with_a_larger_n_moves_earlier(mesh):
+    rig0 = MouthRig(mesh, MARKERS, CONTOURS)
+    rig1 = MouthRig(mesh, MARKERS, CONTOURS, n=(0.0, 0.0, 0.0, 0.6))
+    disp = np.tile([0.0, -0.4, 0.1], (4, 1))
+    v = mesh.vertices
+    early = rig1.deform(v, disp, t=0.3) - rig0.deform(v, disp, t=0.3)
+    inner_only = np.setdiff1d(CONTOURS[3], np.concatenate(CONTOURS[:3]))
+    outer_only = np.setdiff1d(CONTOURS[0], np.concatenate(CONTOURS[1:]))
+    assert np.all(early[inner_only, 1] < -0.01)  # further along the way down
+    assert np.allclose(early[outer_only], 0.0)
+    assert np.allclose(rig1.deform(v, disp, t=1.0), rig0.deform(v, disp, t=1.0))
+    with pytest.raises(ValueError, match=r"n must be in \(-1, 1\)"):
+        MouthRig(mesh, MARKERS, CONTOURS, n=(0.0, 0.0, 0.0, 1.0))
+
+
+def test_sweep_takes_a_blending_parameter_per_point():
+    rng = np.random.default_rng(1)
+    c1 = rng.normal(size=(5, 3))
+    c2 = c1 + 1.0
+    centre, axis = np.zeros(3), np.array([0.0, 0.0, 1.0])
+    n = np.zeros((5, 3))
+    n[2] = 0.5
+    got = sweep(c1, c2, 0.3, centre, axis, n)
+    assert np.allclose(got[[0, 1, 3, 4]], sweep(c1, c2, 0.3, centre, axis)[[0, 1, 3, 4]])
+    assert np.allclose(got[2], sweep(c1, c2, 0.3, centre, axis, 0.5)[2])
+    with pytest.raises(ValueError, match=r"expected n of shape"):
+        sweep(c1, c2, 0.3, centre, axis, np.zeros((4, 3)))
+
+
+def test_control_vectors_spread_a_common_marker_velocity_unchanged(rig):
+    velocity = np.tile([0.1, -0.2, 0.05], (4, 1))
+    assert np.allclose(rig.control_vectors(velocity), velocity[0])
+
+
+def test_between_leaves_and_reaches_the_key_frames_at_the_markers_speed(mesh, rig):
+    v = mesh.vertices
+    step = np.zeros_like(v)
+    step[rig.ring_vertices] = [0.0, -0.3, 0.0]  # the lips drop 3 mm a key frame interval
+    before, a, b = v - step, v, v + step
+    rings = rig.ring_vertices
+    assert np.allclose(rig.between(a, a, b, 0.0, before)[rings], a[rings])
+    assert np.allclose(rig.between(b, a, b, 1.0, before)[rings], b[rings])
+    h = 1e-4
+    start = (rig.between(a, a, b, h, before) - a)[rings] / h
+    end = (b - rig.between(b, a, b, 1.0 - h, before))[rings] / h
+    assert np.allclose(start, step[rings], atol=1e-3)  # at the markers' velocity
+    assert np.allclose(end, step[rings], atol=1e-3)
+    # The blending function alone leaves and arrives at rest.
+    still = (rig.between(a, a, b, h, before, control=False) - a)[rings] / h
+    assert np.abs(still).max() < 1e-2
+    # The skin around the lips is carried with them, the far face is not.
+    moved = rig.between(a, a, b, 0.5, before) - a
+    assert np.abs(moved[rig.follow_vertices]).max() > 0.01
+    far = np.setdiff1d(np.arange(len(v)), np.concatenate([rings, rig.follow_vertices]))
+    assert np.allclose(moved[far], 0.0)

@@ -149,3 +149,51 @@ def test_the_scene_moves_with_its_corners() -> None:
     assert np.allclose(
         corners_from_homography(half, 640, 480), [4.0, -2, 3, 1, -1.5, 2.5, 0.5, 0.5]
     )
+
+
+def _rings(painter: Painter, a: FrameValues, b: FrameValues, t: float) -> np.ndarray:
+    return painter.face_between(a, b, t)[1][painter.mouth.ring_vertices]
+
+
+def test_the_lips_between_two_frames_follow_the_homotopy_sweep(frames) -> None:
+    decoder, a, b = frames
+    painter = Painter(decoder)
+    ends = [painter.face(v) for v in (a, b)]
+    gaps = [_mouth_gap(v) for v in ends]
+    assert gaps[1] - gaps[0] > 0.2  # the jaw opens
+    rings = painter.mouth.ring_vertices
+    assert np.allclose(_rings(painter, a, b, 0.0), ends[0][rings])
+    assert np.allclose(_rings(painter, a, b, 1.0), ends[1][rings])
+    # From rest at a (no frame before it), halfway in time the sweep is halfway: R_0(1/2) is
+    # 1/2 and the control vectors' weights vanish at t = 1/2 (k = 0.5). The mouth's wires
+    # alone (t^3) would open it 1/8.
+    middle = painter.face_between(a, b, 0.5)[1]
+    opened = (_mouth_gap(middle) - gaps[0]) / (gaps[1] - gaps[0])
+    assert opened == pytest.approx(0.5, abs=0.05)
+
+
+def test_the_lips_keep_their_speed_through_a_frame(frames) -> None:
+    """Three frames, the lips opening at an even pace: the sweep into the middle frame and
+    the sweep out of it meet at the same velocity, the markers' (not at rest, as the
+    blending function alone would have them)."""
+    decoder, a, b = frames
+    values = {
+        name: np.round((np.asarray(a.values[name]) + np.asarray(b.values[name])) / 2).astype(
+            np.asarray(a.values[name]).dtype
+        )
+        for name in a.values
+    }
+    half = FrameValues(b.seq, b.capture_us, values)
+    end = FrameValues(b.seq + 1, b.capture_us + 33_333, b.values)
+    painter = Painter(decoder)
+    painter.exact(a)
+    h = 0.01
+    arriving = (_rings(painter, a, half, 1.0) - _rings(painter, a, half, 1.0 - h)) / h
+    leaving = (_rings(painter, half, end, h) - _rings(painter, half, end, 0.0)) / h
+    chord = (
+        painter.face(end)[painter.mouth.ring_vertices]
+        - painter.face(half)[painter.mouth.ring_vertices]
+    )
+    speed = np.linalg.norm(chord, axis=1).mean()
+    assert np.linalg.norm(arriving, axis=1).mean() > 0.5 * speed
+    assert np.linalg.norm(leaving - arriving, axis=1).mean() < 0.2 * speed
