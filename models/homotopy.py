@@ -325,12 +325,15 @@ class MouthRig:
         marker_disp: np.ndarray,
         t: float = 1.0,
         inner_disp: np.ndarray | None = None,
+        velocities: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """(n, 3) ``vertices`` with the lips swept a fraction ``t`` toward their targets.
 
         vertices : (n, 3) current positions, cm; the rings in it are C1
         marker_disp : (4, 3) marker displacements from ``vertices`` to the target (C2)
         t : sweep time in [0, 1]; 1 reaches the target contours
+        velocities : the four markers' (4, 3) velocities at C1 and at C2 (cm per sweep), which
+            the lips leave C1 and reach C2 with (the control vectors); None: at rest
         """
         v = np.asarray(vertices, dtype=np.float64)
         if v.shape != (self.n_vertices, 3):
@@ -338,7 +341,11 @@ class MouthRig:
         c1 = v[self.ring_vertices]
         c2 = c1 + self.ring_targets(marker_disp, inner_disp)
         centre = v[self.outer_ring].mean(axis=0)
-        moved = sweep(c1, c2, t, centre, self.axis, self.ring_n, self.k) - c1
+        v1 = v2 = None
+        if velocities is not None:
+            v1 = self.control_vectors(velocities[0])
+            v2 = -self.control_vectors(velocities[1])  # sigma2's slope at t = 1 is -1
+        moved = sweep(c1, c2, t, centre, self.axis, self.ring_n, self.k, v1, v2) - c1
         return self._carry(v, moved)
 
     def between(

@@ -252,3 +252,16 @@ def test_between_leaves_and_reaches_the_key_frames_at_the_markers_speed(mesh, ri
     assert np.abs(moved[rig.follow_vertices]).max() > 0.01
     far = np.setdiff1d(np.arange(len(v)), np.concatenate([rings, rig.follow_vertices]))
     assert np.allclose(moved[far], 0.0)
+
+
+def test_deform_with_marker_velocities_bends_the_path_not_its_ends(mesh, rig):
+    v = mesh.vertices
+    disp = np.tile([0.0, -0.3, 0.0], (4, 1))
+    fast = (np.tile([0.0, -0.6, 0.0], (4, 1)), np.zeros((4, 3)))
+    rings = rig.ring_vertices
+    assert np.allclose(rig.deform(v, disp, 1.0, velocities=fast), rig.deform(v, disp, 1.0))
+    h = 1e-4
+    start = (rig.deform(v, disp, h, velocities=fast) - v)[rings] / h
+    assert np.allclose(start, [0.0, -0.6, 0.0], atol=1e-3)  # leaves at the markers' speed
+    quarter = rig.deform(v, disp, 0.25, velocities=fast) - rig.deform(v, disp, 0.25)
+    assert np.all(quarter[rings, 1] < 0)  # ahead of the unbent path
