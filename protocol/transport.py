@@ -863,12 +863,11 @@ class ReceiverEndpoint(_Endpoint):
         self.snapshot = None
         self._rejoin_reason = None
         self._bye = False
-        for sock in (self._sub, self._dealer):
-            for _ in range(4 * UPDATE_HWM):
-                try:
-                    sock.recv_multipart(zmq.NOBLOCK)
-                except zmq.Again:
-                    break
+        for _ in range(4 * UPDATE_HWM):
+            try:
+                self._sub.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
 
     def _read_events(self) -> None:
         for monitor in self._monitors:

@@ -235,3 +235,45 @@ def test_the_first_copy_is_passed_on_and_a_late_second_one_counts(context: Conte
         receiver.close()
         server.join()
         hand.close()
+
+
+def test_a_rejoin_while_the_second_path_is_open_takes_each_frame_once(
+    sender: SenderEndpoint, receiver: ReceiverEndpoint
+) -> None:
+    open_second_path(sender, receiver)
+    for seq in range(1, 6):
+        sender.publish(frame(seq))
+    frames_received(receiver, until_copies=5)
+    # Frames published while the receiver rejoins arrive over both paths; the old stream's
+    # copies left on DEALER must not pass for the new stream's packets, and the new stream's
+    # counters, which start over, are not copies of the old one's.
+    for seq in range(6, 9):
+        sender.publish(frame(seq))
+    sender.set_snapshot(snapshot(seq=0))
+    joined = threading.Event()
+
+    def serve() -> None:  # the sender's loop answers probes and requests as it goes
+        while not joined.is_set():
+            sender.poll(10)
+
+    server = threading.Thread(target=serve)
+    server.start()
+    try:
+        assert receiver.fetch_snapshot(TIMEOUT_MS).seq == 0
+    finally:
+        joined.set()
+        server.join()
+    assert sender.spare_peers == 1  # the same connection: still open
+    packets = [frame(seq) for seq in range(1, 21)]
+    got: list[KeyFrame] = []
+    for packet in packets:
+        sender.publish(packet)
+        while len(got) < packet.seq:
+            received = receiver.recv(TIMEOUT_MS)
+            assert received is not None, f"lost frames after {len(got)}"
+            if isinstance(received, KeyFrame):
+                got.append(received)
+    copies = receiver.stats.copies
+    got += frames_received(receiver, until_copies=copies + 1)
+    assert got == packets
+    assert receiver.stats.malformed == 0  # the old copies were a rejoin's, not bad input
