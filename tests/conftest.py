@@ -2,6 +2,7 @@ import os
 from collections.abc import Iterator
 
 import pytest
+import zmq
 
 from models.mesh import FaceMesh, load_canonical
 
@@ -10,6 +11,14 @@ from models.mesh import FaceMesh, load_canonical
 def mesh() -> FaceMesh:
     """The canonical face mesh (468 vertices)."""
     return load_canonical()
+
+
+@pytest.fixture
+def context() -> Iterator[zmq.Context[zmq.Socket[bytes]]]:
+    """A ZeroMQ context of the test's own, terminated (every socket closed) at its end."""
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+    yield ctx
+    ctx.term()
 
 
 @pytest.fixture(autouse=True)

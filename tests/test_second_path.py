@@ -31,13 +31,6 @@ from receiver.lateness import LateFrames
 
 
 @pytest.fixture
-def context() -> Iterator[Context]:
-    ctx: Context = zmq.Context()
-    yield ctx
-    ctx.term()
-
-
-@pytest.fixture
 def sender(context: Context) -> Iterator[SenderEndpoint]:
     s = SenderEndpoint(context=context, plain=True)
     s.set_snapshot(snapshot(seq=0))
@@ -60,6 +53,22 @@ def open_second_path(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> None
     while sender.spare_peers == 0:
         assert time.monotonic() < deadline, "the late-frames report never opened the second path"
         sender.poll(10)
+
+
+def sent_one_at_a_time(
+    sender: SenderEndpoint, receiver: ReceiverEndpoint, packets: list[KeyFrame]
+) -> list[KeyFrame]:
+    """Publish each packet and read until the receiver has passed on as many frames, as a call
+    sends them (the queues are small); what it passed on."""
+    got: list[KeyFrame] = []
+    for count, packet in enumerate(packets, 1):
+        sender.publish(packet)
+        while len(got) < count:
+            received = receiver.recv(TIMEOUT_MS)
+            assert received is not None, f"lost frames after {len(got)}"
+            if isinstance(received, KeyFrame):
+                got.append(received)
+    return got
 
 
 def frames_received(receiver: ReceiverEndpoint, until_copies: int) -> list[KeyFrame]:
@@ -101,14 +110,7 @@ def test_a_receiver_that_reports_late_frames_gets_each_frame_once(
     assert sender.spare_peers == 0
     open_second_path(sender, receiver)
     packets = [frame(seq) for seq in range(1, 101)]
-    got: list[KeyFrame] = []
-    for packet in packets:  # one at a time, as a call sends them (the queues are small)
-        sender.publish(packet)
-        while len(got) < packet.seq:
-            received = receiver.recv(TIMEOUT_MS)
-            assert received is not None, f"lost frames after {len(got)}"
-            if isinstance(received, KeyFrame):
-                got.append(received)
+    got = sent_one_at_a_time(sender, receiver, packets)
     got += frames_received(receiver, until_copies=100)
     assert got == packets  # each once, in order, whichever path brought it
     assert receiver.stats.malformed == 0
@@ -265,14 +267,7 @@ def test_a_rejoin_while_the_second_path_is_open_takes_each_frame_once(
         server.join()
     assert sender.spare_peers == 1  # the same connection: still open
     packets = [frame(seq) for seq in range(1, 21)]
-    got: list[KeyFrame] = []
-    for packet in packets:
-        sender.publish(packet)
-        while len(got) < packet.seq:
-            received = receiver.recv(TIMEOUT_MS)
-            assert received is not None, f"lost frames after {len(got)}"
-            if isinstance(received, KeyFrame):
-                got.append(received)
+    got = sent_one_at_a_time(sender, receiver, packets)
     copies = receiver.stats.copies
     got += frames_received(receiver, until_copies=copies + 1)
     assert got == packets

@@ -26,13 +26,6 @@ Update = KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot
 
 
 @pytest.fixture
-def context() -> Iterator[Context]:
-    ctx: Context = zmq.Context()
-    yield ctx
-    ctx.term()
-
-
-@pytest.fixture
 def sender(context: Context) -> Iterator[SenderEndpoint]:
     s = SenderEndpoint(context=context, plain=True)
     yield s

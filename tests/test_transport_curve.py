@@ -23,13 +23,6 @@ def keys(tmp_path: Path) -> Keys:
 
 
 @pytest.fixture
-def context() -> Iterator[Context]:
-    ctx: Context = zmq.Context()
-    yield ctx
-    ctx.term()
-
-
-@pytest.fixture
 def sender(keys: Keys) -> Iterator[SenderEndpoint]:
     # Its own context: close() then really frees the ports (the impostor test binds them).
     s = SenderEndpoint(secret_key_file=keys["sender"][1], allowed_keys=[keys["alice"][0]])

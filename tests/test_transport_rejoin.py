@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import zmq
 from transport_helpers import TIMEOUT_MS, Context, frame, join, keypairs, rejoin, snapshot
 
 from protocol.packets import Heartbeat, KeyFrame
@@ -19,13 +17,6 @@ Keys = dict[str, tuple[Path, Path]]
 @pytest.fixture
 def keys(tmp_path: Path) -> Keys:
     return keypairs(tmp_path, "sender", "alice", "bob")
-
-
-@pytest.fixture
-def context() -> Iterator[Context]:
-    ctx: Context = zmq.Context()
-    yield ctx
-    ctx.term()
 
 
 def new_sender(keys: Keys, session_id: int, ports: tuple[int, int] = (0, 0)) -> SenderEndpoint:

@@ -8,7 +8,6 @@ restarted sender.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -24,13 +23,6 @@ Keys = dict[str, tuple[Path, Path]]
 @pytest.fixture
 def keys(tmp_path: Path) -> Keys:
     return keypairs(tmp_path, "sender", "alice", "mallory", "impostor")
-
-
-@pytest.fixture
-def context() -> Iterator[Context]:
-    ctx: Context = zmq.Context()
-    yield ctx
-    ctx.term()
 
 
 def bound_receiver(context: Context, keys: Keys | None, name: str = "alice") -> ReceiverEndpoint:
