@@ -15,6 +15,7 @@ import ctypes
 import logging
 import os
 import threading
+import weakref
 from types import TracebackType
 
 import cv2
@@ -37,6 +38,30 @@ _FLOAT_SIZE = 4
 # let the last one terminate it.
 _live_lock = threading.Lock()
 _live_count = 0
+
+
+def _release(renderer: pyrender.OffscreenRenderer) -> None:
+    """Free one renderer's GL objects and context; only the process's last live renderer
+    ends the shared EGL display. Called once per renderer, by close() or when a FaceRenderer
+    nobody closed is collected (pyrender's own __del__ would end the display for all)."""
+    global _live_count
+    with _live_lock:
+        _live_count -= 1
+        last = _live_count == 0
+        platform = renderer._platform
+        egl_display = getattr(platform, "_egl_display", None)
+        if last or egl_display is None:
+            renderer.delete()
+            return
+        # Free this context's GL objects and the context, but keep the display.
+        from OpenGL.EGL import eglDestroyContext
+
+        platform.make_current()
+        renderer._renderer.delete()
+        eglDestroyContext(egl_display, platform._egl_context)
+        platform._egl_context = None
+        platform._egl_display = None
+
 
 # Camera distance in front of the nearest vertex, in pixels (image-space z units).
 _NEAR_MARGIN = 16.0
@@ -135,6 +160,8 @@ class FaceRenderer:
         global _live_count
         with _live_lock:
             _live_count += 1
+        # Runs _release once: at close(), or when this object is collected unclosed.
+        self._release = weakref.finalize(self, _release, self._renderer)
         # pyrender reads back and linearises depth for every frame; the mask comes from
         # alpha, so read colour only, and only the face's bounding box: resolving the
         # multisampled frame and reading it back cost 6 ms at 640x480 on llvmpipe (pyrender is
@@ -142,7 +169,14 @@ class FaceRenderer:
         # replaces for this instance).
         inner = self._renderer._renderer
         self._window = (0, 0, self.width, self.height)  # x0, y0, x1, y1 read back
-        inner._read_main_framebuffer = lambda scene, flags: (self._read_rgba(inner), None)
+        me = weakref.ref(self)  # no cycle through the renderer: a dropped one is freed at once
+
+        def read(scene: object, flags: int) -> tuple[np.ndarray, None]:
+            owner = me()
+            assert owner is not None  # it is rendering, so it is alive
+            return owner._read_rgba(inner), None
+
+        inner._read_main_framebuffer = read
         self._uploaded = False  # GL buffers exist only after the first render
         self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA
         logger.debug(
@@ -272,24 +306,8 @@ class FaceRenderer:
         """Free the GL context; the renderer cannot be used afterwards."""
         if self._renderer is None:
             return
-        global _live_count
-        renderer, self._renderer = self._renderer, None
-        with _live_lock:
-            _live_count -= 1
-            last = _live_count == 0
-            platform = renderer._platform
-            egl_display = getattr(platform, "_egl_display", None)
-            if last or egl_display is None:
-                renderer.delete()
-                return
-            # Free this context's GL objects and the context, but keep the display.
-            from OpenGL.EGL import eglDestroyContext
-
-            platform.make_current()
-            renderer._renderer.delete()
-            eglDestroyContext(egl_display, platform._egl_context)
-            platform._egl_context = None
-            platform._egl_display = None
+        self._renderer = None
+        self._release()
 
     def __enter__(self) -> FaceRenderer:
         return self

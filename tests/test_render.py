@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import subprocess
@@ -194,6 +195,21 @@ def test_two_renderers_in_one_process(mesh):
     inner = cv2.erode(mb.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     assert (fb[inner] == 77).all()
     assert np.array_equal(np.roll(ma1, 50, axis=1), mb)
+
+
+def test_a_renderer_dropped_without_closing_breaks_no_other(mesh):
+    """A FaceRenderer nobody closed is freed whenever the garbage collector gets to it: that
+    must not end the EGL display the other renderers of the process still draw with."""
+    img = frontal(mesh.vertices)
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as a:
+        first, _ = a.render(img)
+        dropped = FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture())
+        dropped.render(img)
+        del dropped
+        gc.collect()
+        again, _ = a.render(img + [1, 0, 0])
+        again, _ = a.render(img)
+    assert np.array_equal(first, again)
 
 
 _CHILD = """
