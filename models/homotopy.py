@@ -35,12 +35,14 @@ from models.mesh import FaceMesh
 logger = logging.getLogger(__name__)
 
 
-def blend(v: float | np.ndarray, n: float = 0.0) -> np.ndarray:
+def blend(v: float | np.ndarray, n: float | np.ndarray = 0.0) -> np.ndarray:
     """Blending function R_n(v) for v in [0, 1], -1 < n < 1 (Eq. 7, corrected; see module doc).
 
     Larger n moves the transition earlier; n = 0 is the symmetric v^2 / (v^2 + (1-v)^2).
+    ``n`` may be an array (one per value, broadcast against ``v``).
     """
-    if not -1.0 < n < 1.0:
+    n = np.asarray(n, dtype=np.float64)
+    if not np.all((n > -1.0) & (n < 1.0)):
         raise ValueError(f"blending parameter n must be in (-1, 1), got {n}")
     v = np.asarray(v, dtype=np.float64)
     a = (1.0 + n) * v * v
@@ -124,13 +126,7 @@ def sweep(
         raise ValueError(f"expected n of shape (), (3,) or ({m}, 3), got {n_arr.shape}")
     k1, k2 = np.broadcast_to(np.asarray(k, dtype=np.float64), (2,))
     frames = cylindrical_frames(c1, np.asarray(centre, dtype=np.float64), axis)
-    if n_arr.ndim == 2:
-        if not np.all((n_arr > -1.0) & (n_arr < 1.0)):
-            raise ValueError("blending parameters n must all be in (-1, 1)")
-        a = (1.0 + n_arr) * t * t
-        r = a / (a + (1.0 - n_arr) * (1.0 - t) ** 2)
-    else:
-        r = np.array([blend(t, float(x)) for x in np.broadcast_to(n_arr, (3,))])
+    r = blend(t, n_arr if n_arr.ndim == 2 else np.broadcast_to(n_arr, (3,)))
     # Local coordinates of B minus those of A: [C2r - C1r, C2theta, C2z - C1z].
     step = r * np.einsum("mij,mj->mi", frames, c2 - c1)
     if v1 is not None or v2 is not None:
@@ -202,8 +198,7 @@ class MouthRig:
         if not falloff > 0:
             raise ValueError(f"falloff must be > 0 cm, got {falloff}")
         contour_n = np.broadcast_to(np.asarray(n, dtype=np.float64), (4,))
-        for value in contour_n:
-            blend(0.0, float(value))  # validate early
+        blend(0.0, contour_n)  # validate early
         scaling_factors(0.0, k, k)
         self.n, self.k, self.falloff = contour_n, k, falloff
         self.n_vertices = len(verts)
@@ -340,12 +335,8 @@ class MouthRig:
             raise ValueError(f"expected ({self.n_vertices}, 3) vertices, got {v.shape}")
         c1 = v[self.ring_vertices]
         c2 = c1 + self.ring_targets(marker_disp, inner_disp)
-        centre = v[self.outer_ring].mean(axis=0)
-        v1 = v2 = None
-        if velocities is not None:
-            v1 = self.control_vectors(velocities[0])
-            v2 = -self.control_vectors(velocities[1])  # sigma2's slope at t = 1 is -1
-        moved = sweep(c1, c2, t, centre, self.axis, self.ring_n, self.k, v1, v2) - c1
+        start, end = (None, None) if velocities is None else velocities
+        moved = self._sweep(c1, c2, t, v[self.outer_ring].mean(axis=0), start, end) - c1
         return self._carry(v, moved)
 
     def between(
@@ -381,15 +372,30 @@ class MouthRig:
                 raise ValueError(f"expected ({self.n_vertices}, 3) vertices, got {x.shape}")
         base, a, b = arrays[:3]
         markers, rings = self.marker_vertices, self.ring_vertices
-        v1 = v2 = None
+        start = end = None
         if control:
             if before is not None:
-                v1 = self.control_vectors(a[markers] - arrays[3][markers])
-            # sigma2 has slope -1 at t = 1 (k = 0.5): the end velocity enters negated.
-            v2 = -self.control_vectors(b[markers] - a[markers])
+                start = a[markers] - arrays[3][markers]
+            end = b[markers] - a[markers]
         centre = a[self.outer_ring].mean(axis=0)
-        swept = sweep(a[rings], b[rings], t, centre, self.axis, self.ring_n, self.k, v1, v2)
+        swept = self._sweep(a[rings], b[rings], t, centre, start, end)
         return self._carry(base, swept - base[rings])
+
+    def _sweep(
+        self,
+        c1: np.ndarray,
+        c2: np.ndarray,
+        t: float,
+        centre: np.ndarray,
+        start: np.ndarray | None,
+        end: np.ndarray | None,
+    ) -> np.ndarray:
+        """The rings' points from C1 to C2 at ``t``, leaving at the markers' (4, 3) velocity
+        ``start`` and arriving at ``end`` (None: at rest)."""
+        v1 = None if start is None else self.control_vectors(start)
+        # sigma2 has slope -1 at t = 1 (k = 0.5): the end velocity enters negated.
+        v2 = None if end is None else -self.control_vectors(end)
+        return sweep(c1, c2, t, centre, self.axis, self.ring_n, self.k, v1, v2)
 
     def _carry(self, vertices: np.ndarray, moved: np.ndarray) -> np.ndarray:
         """``vertices`` with the rings moved by ``moved`` (u, 3), the skin around following."""
