@@ -59,22 +59,23 @@ def call(folder: Path, frames: int, hosts: TwoHosts | None) -> dict:
     return json.loads(stats.read_text())
 
 
+def _kbps(run: dict, channel: str) -> float:
+    """Payload kbit/s a run's receiver got on ``channel``, over the clip's duration."""
+    return run["bytes_received"].get(channel, 0) * 8 / (run["frames_out"] / FPS) / 1000
+
+
 def show(name: str, runs: list[dict], relayed: list[str]) -> None:
     for i, r in enumerate(runs):
         lat = r["latency_ms"]
         freezes = [length for _, length in r["freezes"]]
         spare = r["second_path"]
-
-        def kbps(channel: str, r: dict = r) -> float:  # payload received, over the clip
-            return r["bytes_received"].get(channel, 0) * 8 / (r["frames_out"] / FPS) / 1000
-
         print(
             f"{name} run {i + 1}: {r['frames_out']} frames out ({r['ended_by']}), latency p50 "
             f"{lat['p50']:.1f} p90 {lat['p90']:.1f} p99 {lat['p99']:.1f} max {lat['max']:.1f} ms, "
             f"freezes {len(freezes)} (longest {max(freezes, default=0)} frames), "
             f"receiver {r['receiver_fps']:.0f} fps; second path: {spare['late_frames']} late "
             f"frames, {spare['saved']} frames it brought {LATE_FRAME_MS}+ ms sooner, "
-            f"{kbps('spare'):.2f} kbit/s of copies (geometry {kbps('geometry'):.2f})"
+            f"{_kbps(r, 'spare'):.2f} kbit/s of copies (geometry {_kbps(r, 'geometry'):.2f})"
             + (f"; link {relayed[i]}" if relayed and relayed[i] else "")
         )
 
