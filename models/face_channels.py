@@ -7,8 +7,8 @@ Both ends agree on what each channel means (docs/protocol.md section 6):
 - ``pose.scale`` (1): ln(scale), scale in pixels per cm;
 - ``pose.translation`` (3): translation in image pixels;
 - ``wire`` (K): coefficients of the rig's wire basis (:class:`WireBasis`), in cm;
-- ``lips`` (2): the inner lips' opening the wires cannot make, in cm
-  (:mod:`models.mouth_opening`).
+- ``lips`` (8): the inner lip contour where the wires cannot put it, four markers' x and y,
+  in cm (:mod:`models.mouth_opening`).
 
 The steps are chosen from the error they may cause on screen: each channel moves no vertex by
 more than ``error_px`` pixels at the call's size (see :func:`channel_steps`).
@@ -127,7 +127,7 @@ def channel_steps(
     With the sender's hysteresis the error of one value is up to (0.5 + HYSTERESIS) steps:
     a rotation step d moves a vertex r * d px, a log-scale step r * d px (r the face radius in
     px), a translation step d px, and a wire coefficient (cm, max displacement 1 cm per unit)
-    scale * d px, and a lips value (cm, the inner lip's centre moves by it) scale * d px: its
+    scale * d px, and a lips value (cm, its marker's vertex moves by it) scale * d px: its
     step is twice the budget's, the lips' parting being seen to about a pixel (at half the
     step carphone paid 0.09 kbit/s for it instead of 0.05, mostly for a shut mouth's jitter).
     """

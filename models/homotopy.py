@@ -140,6 +140,7 @@ def sweep(
 
 MARKER_ORDER = ("left", "top", "right", "bottom")
 RING_LEVELS = (0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0)  # outer, ring, ring, inner (section 3.7.1)
+MARKER_ANGLES = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])  # left, top, right, bottom
 
 
 def _falloff(x: np.ndarray) -> np.ndarray:
@@ -159,11 +160,12 @@ class MouthRig:
     falloff : cm; mesh vertices outside the rings within this distance of a ring
         vertex follow the rings with weight (1 - (d/falloff)^2)^2
 
-    Marker displacements are spread around each ring by angle on the ellipse through
-    the four markers' rest positions: a trigonometric interpolant in 1, cos, sin, cos 2
-    of the ellipse angle (the paper models fibres with a cosine curve) through the four
-    markers, whose weights sum to one, so a common displacement moves every ring
-    vertex by exactly that displacement. The outer ring follows ``marker_disp``, the
+    Marker displacements are spread around each ring by angle on an ellipse: a
+    trigonometric interpolant in 1, cos, sin, cos 2 of the angle (the paper models fibres
+    with a cosine curve) through the four markers at 0, pi/2, pi and -pi/2, whose weights
+    sum to one, so a common displacement moves every ring vertex by exactly that
+    displacement. Each ring's angles are on its own ellipse (:meth:`_ring_angles`), the
+    shut mouth's flat inner ring included. The outer ring follows ``marker_disp``, the
     inner ring ``inner_disp`` (the same by default) and the middle rings 1/3 and 2/3 of
     the way between (section 3.7.1).
 
@@ -210,8 +212,7 @@ class MouthRig:
 
         ring_all = np.concatenate(rings)
         self.axis = self._mouth_axis(*verts[self.marker_vertices])
-        phi_markers = self._ellipse_angles(verts, verts[self.marker_vertices])
-        basis_inv = np.linalg.inv(self._trig_basis(phi_markers))
+        basis_inv = np.linalg.inv(self._trig_basis(MARKER_ANGLES))
 
         # Unique ring vertices; a vertex on several rings averages its levels.
         self.ring_vertices, inverse = np.unique(ring_all, return_inverse=True)
@@ -225,7 +226,14 @@ class MouthRig:
         )
         # (u, 3) blending parameter of each ring vertex (a vertex on several rings: the mean).
         self.ring_n = np.repeat((np.bincount(inverse, weights=per_ring) / count)[:, None], 3, 1)
-        w = self._trig_basis(self._ellipse_angles(verts, verts[self.ring_vertices])) @ basis_inv
+        phi = np.zeros(len(self.ring_vertices))
+        for ring in rings:  # a vertex on several rings: the last (innermost) ring's angle
+            phi[np.searchsorted(self.ring_vertices, ring)] = self._ring_angles(verts, ring)
+        marker_rows = np.searchsorted(self.ring_vertices, self.marker_vertices)
+        found = self.ring_vertices[np.minimum(marker_rows, len(self.ring_vertices) - 1)]
+        markers_on_rings = found == self.marker_vertices
+        phi[marker_rows[markers_on_rings]] = MARKER_ANGLES[markers_on_rings]
+        w = self._trig_basis(phi) @ basis_inv
         # (u, 4) weights of marker_disp and of inner_disp for each ring vertex.
         self.outer_weights = (1.0 - alpha)[:, None] * w
         self.inner_weights = alpha[:, None] * w
@@ -272,20 +280,37 @@ class MouthRig:
         axis /= norm
         return axis if axis[2] >= 0 else -axis
 
-    def _ellipse_angles(self, verts: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """Angles of ``points`` on the ellipse through the markers (left = 0, top = pi/2)."""
+    def _ring_angles(self, verts: np.ndarray, ring: np.ndarray) -> np.ndarray:
+        """Angles of a ring's vertices on its own ellipse (left = 0, top = pi/2, right = pi,
+        bottom = -pi/2): the cosine is the vertex's place from the ring's right to its left
+        end (-1 .. 1), and the arc between the two ends that reaches highest is the upper
+        lip's (positive angles).
+
+        From the ring itself, not from the markers' ellipse: the inner ring of a shut mouth
+        is a flat line through that ellipse's centre, where angles from the markers would
+        jump from 0 to pi/2 and pi between neighbours.
+        """
         left, top, right, bottom = verts[self.marker_vertices]
         u = left - right
         u -= (u @ self.axis) * self.axis
         u /= np.linalg.norm(u)
         w = np.cross(self.axis, u)
-        cu = 0.5 * ((left + right) @ u)
-        cw = 0.5 * ((top + bottom) @ w)
-        a = 0.5 * ((left - right) @ u)
-        b = 0.5 * ((top - bottom) @ w)
-        if not (a > 0 and b > 0):
-            raise ValueError(f"degenerate mouth ellipse: semi-axes {a:.3g}, {b:.3g} cm")
-        return np.arctan2((points @ w - cw) / b, (points @ u - cu) / a)
+        x, y = verts[ring] @ u, verts[ring] @ w
+        lo, hi = int(np.argmin(x)), int(np.argmax(x))
+        half = 0.5 * (x[hi] - x[lo])
+        if not half > 0:
+            raise ValueError("degenerate lip contour: its ends coincide")
+        cosine = np.clip((x - 0.5 * (x[hi] + x[lo])) / half, -1.0, 1.0)
+        # The two arcs of the loop between its ends.
+        order = np.arange(len(ring))
+        a, b = sorted((lo, hi))
+        one = (order > a) & (order < b)
+        other = (order < a) | (order > b)
+        if not other.any() or (one.any() and y[one].max() >= y[other].max()):
+            upper = one
+        else:
+            upper = other
+        return np.where(upper, 1.0, -1.0) * np.arccos(cosine)
 
     @staticmethod
     def _trig_basis(phi: np.ndarray) -> np.ndarray:

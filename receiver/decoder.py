@@ -3,8 +3,9 @@
 The snapshot gives the person's mesh, texture, background and channel table; the wire
 deformer is built once from that mesh and the bundled rig. Per frame: decode the channels
 (protocol.channels) -> dequantise -> wire basis coefficients to wire parameters -> wire
-deformation (seed 000, Eq. 1-3, a sparse matrix-vector product) -> the inner lips' opening
-(two GDEs, models/mouth_opening.py) -> head pose -> offscreen render over the background.
+deformation (seed 000, Eq. 1-3, a sparse matrix-vector product) -> the inner lip contour
+(seed 003's mouth rig, models/mouth_opening.py) -> head pose -> offscreen render over the
+background.
 """
 
 from __future__ import annotations
