@@ -65,6 +65,10 @@ EYE_HEAD_START = 15
 #: blink, a glance), may spend the bytes kept for the eyes; a smaller change, or one eye's
 #: alone (the head turning the light on it), may not.
 BIG_CHANGE = 0.15
+#: Both eyes changed when their changes were seen at most this many frames apart: one eye's
+#: may have gone out already (or matched an image held) when the other's shows, and the
+#: other eye's patch is still the blink's.
+PAIRED_FRAMES = 3
 #: A change still growing (by more than this factor a frame: a lid closing, a glance on its
 #: way) waits for where it comes to rest, at most SETTLE_FRAMES frames.
 SETTLED = 1.15
@@ -152,6 +156,7 @@ class _Region:
     waiting: int = 0  # frames it has been changed and not sent
     score: float = 0.0  # its change in the last frame (0: none)
     dirty: bool = False  # something was sent for it since the last keyframe
+    changed_at: int = -(10**9)  # the last frame it was seen changed
 
     def choices(self) -> list[_Image]:
         return [self.base, *self.held]
@@ -350,6 +355,11 @@ class RemEncoder:
                     best, moved = cost, d > CHANGE_LEVEL
         return float((weight * moved).sum()) / total
 
+    def both_eyes_changed(self, seq: int) -> bool:
+        """Whether both eyes were seen changed within PAIRED_FRAMES of frame ``seq``."""
+        eyes = self._colour_regions
+        return bool(eyes) and all(seq - self.states[n].changed_at <= PAIRED_FRAMES for n in eyes)
+
     def request_refresh(self) -> None:
         """The next keyframe repeats every region (a receiver asked for one)."""
         self._refresh_all = True
@@ -399,6 +409,7 @@ class RemEncoder:
                 state.waiting, state.score = 0, 0.0
                 continue
             self.counts.changed_frames[name] = self.counts.changed_frames.get(name, 0) + 1
+            state.changed_at = seq
             state.waiting += 1
             pending += 1
             rising, state.score = score > SETTLED * state.score, score
@@ -413,7 +424,7 @@ class RemEncoder:
         # the eyes; anything else (one eye alone: mostly the light or the fit moving) only
         # what leaves them. Each takes its share among the regions waiting (a lid still
         # closing included: the other eye's image is due a frame later).
-        both = all(self.states[n].score >= CHANGE_FRACTION for n in self._colour_regions)
+        both = self.both_eyes_changed(seq)
         for i, (_, _, name, score) in enumerate(candidates):
             big = name in EYES and score >= BIG_CHANGE and both
             reserve = 0.0 if big else self._eye_reserve(set())
