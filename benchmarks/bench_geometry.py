@@ -1,7 +1,7 @@
 """Geometry bit rate and the error its coding adds, on a clip (no network, no render).
 
 Usage: python benchmarks/bench_geometry.py [--input CLIP] [--error-px E ...] [--frames N]
-       [--no-smoothing]
+       [--no-smoothing] [--geometry-kbps KBPS]
 
 Runs the sender's encoder over every frame and decodes every packet as the receiver would.
 Frames are stamped with their nominal capture times (frame index / fps), as a call paced at
@@ -10,7 +10,8 @@ the clip's frame rate stamps them; reading as fast as possible would make every 
 clip's frame rate:
 - payload: bytes of the frame packets (key and delta) as ZeroMQ carries them, in kbit/s, split
   into packet headers and range-coded bodies, with the keyframes and the frames that needed
-  no packet;
+  no packet, and of those the frames the rate cap held back (``--geometry-kbps``, default
+  the sender's 1.5; 0: no cap);
 - where the body bits go: the information coded per channel in delta frames, the delta frames'
   frame step and capture time, whole keyframe bodies, and what rounding bodies up to whole
   bytes adds;
@@ -36,6 +37,7 @@ from protocol.packets import KeyFrame, decode
 from protocol.quant import dequantise
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
+from sender.rate_cap import GEOMETRY_KBPS
 
 ZMTP_BYTES = 2
 TCP_IP_BYTES = 52
@@ -50,12 +52,21 @@ def _stats(prefix: str, x: np.ndarray) -> dict[str, float]:
 
 
 def measure(
-    path: Path, error_px: float, frames: int | None, smoothing: bool = True
+    path: Path,
+    error_px: float,
+    frames: int | None,
+    smoothing: bool = True,
+    geometry_kbps: float = GEOMETRY_KBPS,
 ) -> dict[str, object]:
     with VideoSource(path) as video:
         fps = video.fps
         encoder = FaceEncoder(
-            video.width, video.height, fps, error_px=error_px, smoothing=smoothing
+            video.width,
+            video.height,
+            fps,
+            error_px=error_px,
+            smoothing=smoothing,
+            geometry_kbps=geometry_kbps or None,
         )
         it = (
             CapturedFrame(f.index, f.image, round(f.index * 1e6 / fps))
@@ -128,6 +139,7 @@ def measure(
         **_stats("raw_px", np.concatenate(raw_px)),
         "size": f"{snapshot.width}x{snapshot.height}",
         "budget_px": encoder.budget_px,
+        "held": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
     }
 
 
@@ -139,16 +151,20 @@ def main() -> None:
     parser.add_argument(
         "--no-smoothing", action="store_true", help="quantise the tracker's raw values"
     )
+    parser.add_argument("--geometry-kbps", type=float, default=GEOMETRY_KBPS)
     args = parser.parse_args()
     for e in args.error_px:
-        r = measure(args.input, e, args.frames, smoothing=not args.no_smoothing)
+        r = measure(
+            args.input, e, args.frames, not args.no_smoothing, geometry_kbps=args.geometry_kbps
+        )
         smoothing = "no smoothing" if args.no_smoothing else "smoothed"
         print(
             f"{args.input.name} {r['size']}, error budget {e} px/channel (this face: "
             f"{r['budget_px']:.3f} px), {smoothing}, "
             f"{r['frames']} frames: payload {r['payload_kbps']:.2f} kbit/s (headers "
             f"{r['header_kbps']:.2f}, bodies {r['body_kbps']:.2f}; {r['keyframes']} keyframes, "
-            f"{r['skipped']} frames without a packet); on the wire {r['wire_kbps']:.1f} kbit/s "
+            f"{r['skipped']} frames without a packet, {r['held']} of them held back by the "
+            f"rate cap); on the wire {r['wire_kbps']:.1f} kbit/s "
             f"+ {r['ack_kbps']:.1f} kbit/s of ACKs back"
         )
         bodies = r["bodies_kbps"]

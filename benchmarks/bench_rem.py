@@ -2,7 +2,8 @@
 
 Usage:
   PYOPENGL_PLATFORM=egl python benchmarks/bench_rem.py [--input CLIP ...] [--frames N]
-      [--no-adapt] [--budget KBPS] [--crops DIR --at F,F,...] [--video DIR]
+      [--no-adapt] [--budget KBPS] [--geometry-kbps KBPS] [--crops DIR --at F,F,...]
+      [--video DIR]
   python benchmarks/bench_rem.py --codecs [--input CLIP ...]
 
 Each clip is sent twice through the real encoder and decoder (packets as bytes, no sockets,
@@ -50,6 +51,7 @@ from receiver.decoder import FaceDecoder  # noqa: E402
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
 from sender.encoder import FaceEncoder  # noqa: E402
 from sender.landmarks import LandmarkTracker  # noqa: E402
+from sender.rate_cap import GEOMETRY_KBPS  # noqa: E402
 from sender.rem import BUCKET_S  # noqa: E402
 
 RIGHT_EYE = (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246)
@@ -121,9 +123,10 @@ def call(
     adapt: bool = True,
     budget_kbps: float | None = None,
     regions: tuple[str, ...] | None = None,
+    geometry_kbps: float = GEOMETRY_KBPS,
 ) -> Run:
-    """Both ends over ``frames``; every frame rebuilt."""
-    encoder = FaceEncoder(size[0], size[1], fps, rem=rem)
+    """Both ends over ``frames``; every frame rebuilt (``geometry_kbps`` 0: no rate cap)."""
+    encoder = FaceEncoder(size[0], size[1], fps, rem=rem, geometry_kbps=geometry_kbps or None)
     snapshot = encoder.start(frames[0], seq=0)
     assert snapshot is not None, "no face in the first frame"
     if encoder.rem is not None and budget_kbps is not None:
@@ -317,7 +320,7 @@ def bench_clip(path: Path, args: argparse.Namespace) -> None:
     tracker = LandmarkTracker()
     points = [None if (t := tracker.track(img)) is None else t.points for img in inputs]
     duration = len(frames) / fps
-    runs = {"no REM": call(frames, size, fps, rem=False)}
+    runs = {"no REM": call(frames, size, fps, rem=False, geometry_kbps=args.geometry_kbps)}
     runs["REM"] = call(
         frames,
         size,
@@ -326,6 +329,7 @@ def bench_clip(path: Path, args: argparse.Namespace) -> None:
         adapt=not args.no_adapt,
         budget_kbps=args.budget,
         regions=args.regions,
+        geometry_kbps=args.geometry_kbps,
     )
     print(f"{path.name} ({size[0]}x{size[1]}, {len(frames)} frames):")
     print("  run     " + "  ".join(f"{r + ' SSIM/PSNR':>22}" for r in REGIONS))
@@ -472,6 +476,12 @@ def main() -> None:
     parser.add_argument("--frames", type=int)
     parser.add_argument("--no-adapt", action="store_true", help="paste without Eq. 2")
     parser.add_argument("--budget", type=float, help="REM kbit/s (default: the sender's)")
+    parser.add_argument(
+        "--geometry-kbps",
+        type=float,
+        default=GEOMETRY_KBPS,
+        help="the sender's rate cap on frame packets (default its own; 0: none)",
+    )
     parser.add_argument(
         "--regions",
         type=lambda s: tuple(s.split(",")),

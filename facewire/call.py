@@ -167,6 +167,30 @@ def _sound_kbps(text: str) -> float:
     return kbps
 
 
+def _geometry_kbps(text: str) -> float:
+    try:
+        kbps = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (0 <= kbps < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected kbit/s >= 0 (0: no cap), got {text!r}")
+    return kbps
+
+
+def add_geometry_arguments(p: argparse.ArgumentParser) -> None:
+    """The sending end's cap on the face's parameter packets (sender/rate_cap.py)."""
+    from sender.rate_cap import GEOMETRY_KBPS
+
+    p.add_argument(
+        "--geometry-kbps",
+        type=_geometry_kbps,
+        default=GEOMETRY_KBPS,
+        metavar="KBPS",
+        help=f"cap on the face's parameter packets; over it a frame's packet waits and the "
+        f"receiver keeps the last picture (default {GEOMETRY_KBPS:g}; 0: no cap)",
+    )
+
+
 def add_sound_arguments(p: argparse.ArgumentParser) -> None:
     """The sending end's sound: the file's audio track, or the microphone with a camera."""
     sound = p.add_mutually_exclusive_group()
@@ -306,7 +330,9 @@ def send(
 
     source = _Source(args)
     try:
-        encoder = FaceEncoder(*source.size, source.video.fps)
+        encoder = FaceEncoder(
+            *source.size, source.video.fps, geometry_kbps=args.geometry_kbps or None
+        )
         frames = source.frames()
         snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.name)
         width, height = source.size
@@ -362,6 +388,7 @@ def send(
         "keyframe_requests": report.keyframe_requests,
         "sender_fps": report.fps,
         "frames_untracked": encoder.frames_untracked,
+        "frames_over_rate": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
         "fit_residual": encoder.residual.summary(),
         "width": width,
         "height": height,
@@ -611,6 +638,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     add_address_arguments(p)
     _add_source_arguments(p)
+    add_geometry_arguments(p)
     add_sound_arguments(p)
     add_key_arguments(p, "a receiver's public key file, or a folder of them (repeatable)")
     _add_common(p)
@@ -639,6 +667,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     add_address_arguments(p)
     _add_source_arguments(p)
+    add_geometry_arguments(p)
     add_sound_arguments(p)
     p.add_argument("--record", metavar="FILE.mp4", help="record the other end")
     add_watch_arguments(p)

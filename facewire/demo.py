@@ -34,6 +34,7 @@ from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_p
 from sender.encoder import FaceEncoder
 from sender.lift import MarkerFaceTracker
 from sender.markers import NO_MARKERS
+from sender.rate_cap import GEOMETRY_KBPS
 from sender.session import run_sender, wait_until_ready
 
 logger = logging.getLogger(__name__)
@@ -100,7 +101,13 @@ def _call(
 ) -> dict[str, Any]:
     markers = getattr(args, "tracker", "landmarks") == "markers"
     tracker = MarkerFaceTracker() if markers else None
-    encoder = FaceEncoder(video.width, video.height, video.fps, tracker=tracker)
+    encoder = FaceEncoder(
+        video.width,
+        video.height,
+        video.fps,
+        tracker=tracker,
+        geometry_kbps=getattr(args, "geometry_kbps", GEOMETRY_KBPS) or None,
+    )
     frames = video.frames(limit=args.frames)
     buffered = []
     snapshot = None
@@ -177,6 +184,7 @@ def _call(
         "frames_out": report["frames_out"],
         "frames_held": report["frames_held"],
         "frames_untracked": encoder.frames_untracked,
+        "frames_over_rate": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
         "quantiser_clipped": encoder.values_clipped,
         "width": video.width,
         "height": video.height,
@@ -248,7 +256,8 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
     print(
         f"call: {stats['frames_in']} frames in, {stats['frames_out']} out "
         f"({stats['width']}x{stats['height']} at {stats['fps']:.1f} fps, "
-        f"{stats['frames_untracked']} untracked, {stats['malformed']} malformed)"
+        f"{stats['frames_untracked']} untracked, {stats['frames_over_rate']} held back by the "
+        f"geometry's rate cap, {stats['malformed']} malformed)"
     )
     # The second path's copies (late frames asked for them) are shown only when there were any.
     spare = f"  second path {k['spare']:.1f}" if k.get("spare") else ""

@@ -156,6 +156,17 @@ class ChannelEncoder(_Codec):
         """Make the next frame a keyframe (a receiver asked, or a new one joined)."""
         self._key_requested = True
 
+    def keyframe_due(self, seq: int) -> bool:
+        """Whether frame ``seq`` would go as a keyframe (the first, one asked for, the
+        periodic one, or one after a step too long for a delta frame)."""
+        last = self.last
+        return (
+            last is None
+            or self._key_requested
+            or seq - self._last_key_seq >= self.keyframe_interval
+            or not 0 < seq - last.seq <= MAX_SEQ_STEP
+        )
+
     def _check(self, values: Mapping[str, NDArray[np.integer]]) -> dict[str, NDArray[np.int64]]:
         out = {}
         for spec in self.specs:
@@ -194,12 +205,7 @@ class ChannelEncoder(_Codec):
             raise ValueError(f"frame {seq} at {capture_us} us: seq is uint32, the time int64")
         vals = self._check(values)
         last = self.last
-        if (
-            last is None
-            or self._key_requested
-            or seq - self._last_key_seq >= self.keyframe_interval
-            or not 0 < seq - last.seq <= MAX_SEQ_STEP
-        ):
+        if last is None or self.keyframe_due(seq):
             return self._keyframe(seq, capture_us, vals)
         step = seq - last.seq
         residuals = {n: vals[n] - last.values[n] for n in vals}

@@ -52,6 +52,7 @@ from sender.channel_filter import ChannelSmoother
 from sender.fit_residual import FitResidual
 from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from sender.lift import MarkerFaceTracker, MarkerFit
+from sender.rate_cap import GEOMETRY_KBPS, RateCap
 from sender.rem import RemEncoder
 from sender.texture import UvRasteriser
 
@@ -140,6 +141,7 @@ class FaceEncoder:
         basis: WireBasis | None = None,
         smoothing: bool = True,
         rem: bool = True,
+        geometry_kbps: float | None = GEOMETRY_KBPS,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -179,6 +181,8 @@ class FaceEncoder:
         #: Per tracked frame, the wire fit's and the sent face's distance to the tracked face.
         self.residual = FitResidual()
         self._patches: list[RemPatch] = []
+        #: The frame packets' rate cap (None: every frame that changed sends).
+        self.rate_cap = None if geometry_kbps is None else RateCap(geometry_kbps, fps)
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
@@ -374,6 +378,7 @@ class FaceEncoder:
     ) -> KeyFrame | DeltaFrame | None:
         """:meth:`encode` for a frame already analysed (``result`` of :meth:`analyse`)."""
         assert self._channels is not None and self._last_values is not None, "start() first"
+        sent = self._last_values
         if result is None:
             self.frames_untracked += 1  # repeat the last values
         else:
@@ -390,17 +395,32 @@ class FaceEncoder:
             self.intended = floats
             self._last_values = self._quantise(floats, self._last_values)
         patches: list[RemPatch] = []
+        vertices = None
         if result is not None and self.points is not None and self.wires is not None:
             vertices = self.rebuilt_vertices(self._last_values)
-            pose, params = result
-            fitted = pose.apply(self.wires.deform(params))
-            self.residual.add(frame.index, self.points, fitted, vertices)
             if self.rem is not None:
                 patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
-        # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
-        packet, _ = self._channels.encode(
-            frame.index, frame.capture_us, self._last_values, force=bool(patches)
-        )
+        may_send = self.rate_cap is None or self.rate_cap.next_frame()
+        if not (may_send or patches or self._channels.keyframe_due(frame.index)):
+            # Over the rate cap: the receiver keeps what it has (sender/rate_cap.py).
+            assert self.rate_cap is not None
+            moved = any(not np.array_equal(v, sent[n]) for n, v in self._last_values.items())
+            self.rate_cap.held += int(moved)
+            self._last_values = sent
+            if vertices is not None:
+                vertices = self.rebuilt_vertices(sent)
+            packet = None
+        else:
+            # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
+            packet, _ = self._channels.encode(
+                frame.index, frame.capture_us, self._last_values, force=bool(patches)
+            )
+            if packet is not None and self.rate_cap is not None:
+                self.rate_cap.spend(len(bytes(packet)))
+        if result is not None and vertices is not None and self.points is not None:
+            pose, params = result
+            fitted = pose.apply(self.wires.deform(params)) if self.wires is not None else vertices
+            self.residual.add(frame.index, self.points, fitted, vertices)
         if self.rem is not None and isinstance(packet, KeyFrame):
             patches = self.rem.keyframe(frame.index, patches) + patches
         self._patches = patches

@@ -1,0 +1,44 @@
+"""The geometry's rate cap: a token bucket over the frame packets' bytes.
+
+The geometry's payload must stay within its budget (1.5 kbit/s) on any footage, and what it
+costs follows the face: a talking head at 30 fps sends 1.2-1.45 kbit/s, a fast handheld
+shot (foreman) twice that. Over the budget, a frame's packet is held back: the receiver
+keeps drawing the last frame it has, as it does for a frame that needed no packet, and the
+next packet carries the motion since (one delta over several frames costs less than one
+per frame, headers included). Keyframes and frames that carry a REM patch always go; the
+bucket may then run into debt, which the frames after it wait out. Over any stretch of T
+seconds the packets carry at most ``GEOMETRY_KBPS * T`` plus the bucket's BUCKET_S seconds
+(and the keyframes and patch frames' debt, paid back by the frames after them).
+"""
+
+from __future__ import annotations
+
+#: Payload budget of the frame packets, kbit/s (DESIGN.md: all geometry at most 1.5).
+GEOMETRY_KBPS = 1.5
+#: Most the bucket holds, seconds of budget: a burst of motion this long goes at full rate.
+BUCKET_S = 2.0
+#: What it holds at the start, seconds of budget: the session's first keyframe (about 30-40
+#: bytes), so the first frames after it need not wait.
+START_S = 0.25
+
+
+class RateCap:
+    """Token bucket of ``kbps`` at ``fps`` frames per second, START_S full at the start."""
+
+    def __init__(self, kbps: float, fps: float, bucket_s: float = BUCKET_S) -> None:
+        if not (kbps > 0 and fps > 0 and bucket_s > 0):
+            raise ValueError(f"rate {kbps} kbit/s, {fps} fps and bucket {bucket_s} s must be > 0")
+        self.per_frame = kbps * 1000.0 / 8.0 / fps
+        self.capacity = kbps * 1000.0 / 8.0 * bucket_s
+        self.tokens = min(self.capacity, kbps * 1000.0 / 8.0 * START_S)
+        #: Frames whose packet was held back.
+        self.held = 0
+
+    def next_frame(self) -> bool:
+        """Add a frame's worth of bytes; whether the frame's packet may go."""
+        self.tokens = min(self.capacity, self.tokens + self.per_frame)
+        return self.tokens > 0
+
+    def spend(self, nbytes: int) -> None:
+        """Take a sent packet's bytes (into debt if need be)."""
+        self.tokens -= nbytes

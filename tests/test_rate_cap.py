@@ -1,0 +1,77 @@
+"""The geometry's rate cap (sender/rate_cap.py): the bucket, and a call held under it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.packets import DeltaFrame, KeyFrame, decode
+from receiver.decoder import FaceDecoder
+from sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from sender.encoder import FaceEncoder
+from sender.rate_cap import START_S, RateCap
+
+FPS = 30.0
+
+
+def test_the_bucket_fills_by_the_frame_and_lets_debt_be_paid_back() -> None:
+    cap = RateCap(1.2, FPS, bucket_s=1.0)  # 150 bytes a second, 5 a frame
+    assert cap.tokens == pytest.approx(150 * START_S)
+    assert cap.next_frame() and cap.tokens == pytest.approx(150 * START_S + 5)
+    cap.spend(100)  # a keyframe: into debt
+    waits = 0
+    while not cap.next_frame():
+        waits += 1
+    assert waits == int(np.ceil((100 - 150 * START_S - 5) / 5)) - 1
+    for _ in range(100):
+        cap.next_frame()
+    assert cap.tokens == pytest.approx(150.0)  # never more than the bucket
+    with pytest.raises(ValueError, match="must be > 0"):
+        RateCap(0.0, FPS)
+
+
+def _call(frames: list[CapturedFrame], kbps: float | None) -> tuple[FaceEncoder, int, int]:
+    """Both ends over ``frames`` (packets as bytes); after every frame the sender's idea of
+    what the receiver holds is what the receiver decoded. Returns the encoder, the frame
+    packets' bytes and the keyframes."""
+    encoder = FaceEncoder(640, 480, FPS, rem=False, geometry_kbps=kbps)
+    snapshot = encoder.start(frames[0], seq=0)
+    assert snapshot is not None
+    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    nbytes = keyframes = 0
+    try:
+        shown = None
+        for frame in frames[1:]:
+            packet = encoder.encode(frame)
+            if packet is not None:
+                data = bytes(packet)
+                nbytes += len(data)
+                decoded = decode(data)
+                assert isinstance(decoded, (KeyFrame, DeltaFrame))
+                keyframes += isinstance(decoded, KeyFrame)
+                shown = decoder.decode(decoded)
+            assert shown is not None and encoder.values is not None
+            for name, value in encoder.values.items():
+                assert np.array_equal(shown.values[name], value), (frame.index, name)
+    finally:
+        decoder.close()
+    return encoder, nbytes, keyframes
+
+
+def test_a_call_over_its_cap_holds_frames_and_keeps_to_it() -> None:
+    """The bundled clip's first 5 s cost about 1.4 kbit/s; capped at 0.6 the sender holds
+    frames back, keeps to the cap (plus the bucket's start), still sends the periodic
+    keyframe, and the receiver always holds what the sender thinks it holds."""
+    with VideoSource(demo_clip_path()) as video:
+        frames = [
+            CapturedFrame(f.index, f.image, round(f.index * 1e6 / FPS))
+            for f in video.frames(limit=150)
+        ]
+    seconds = (len(frames) - 1) / FPS
+    free, free_bytes, _ = _call(frames, None)
+    assert free.rate_cap is None and free_bytes * 8 / seconds / 1000 > 1.0
+    capped, nbytes, keyframes = _call(frames, 0.6)
+    assert capped.rate_cap is not None and capped.rate_cap.held > 20
+    assert keyframes == 2  # the first, and the periodic one at 4 s
+    start = 0.6 * 1000 / 8 * START_S
+    assert nbytes <= 0.6 * 1000 / 8 * seconds + start + 60  # the keyframe's debt at most
