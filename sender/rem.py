@@ -59,6 +59,8 @@ CHANGE_FRACTION = 0.06
 #: An image the receiver holds stands for the region when it differs on at most this
 #: fraction of the texels.
 SAME_FRACTION = CHANGE_FRACTION / 2
+#: Seconds of budget a blink may borrow when the bucket cannot pay for both eyes.
+BLINK_DEBT_S = 0.5
 #: Frames an eye is taken to have waited already: ahead of a mouth that waited less longer.
 EYE_HEAD_START = 15
 #: An eye that changed on this fraction of its texels, with the other eye changed too (a
@@ -197,6 +199,7 @@ class RemEncoder:
         self.regions = tuple(regions)
         self.first_seq = first_seq
         self.rate = budget_kbps * 1000.0 / 8.0 / fps  # bytes per frame
+        self.rate_per_s = budget_kbps * 1000.0 / 8.0
         self.capacity = budget_kbps * 1000.0 / 8.0 * BUCKET_S
         self.tokens = budget_kbps * 1000.0 / 8.0 * START_S
         rasteriser = UvRasteriser(layout.triangles, layout.uvs, layout.patch_size)
@@ -425,13 +428,22 @@ class RemEncoder:
         # what leaves them. Each takes its share among the regions waiting (a lid still
         # closing included: the other eye's image is due a frame later).
         both = self.both_eyes_changed(seq)
+        blocked = False
         for i, (_, _, name, score) in enumerate(candidates):
             big = name in EYES and score >= BIG_CHANGE and both
-            reserve = 0.0 if big else self._eye_reserve(set())
+            if blocked and not big:
+                self.counts.waited += 1
+                continue
+            # A blink may borrow BLINK_DEBT_S of the budget, which the frames after it pay
+            # back: its moment does not come again.
+            reserve = -BLINK_DEBT_S * self.rate_per_s if big else self._eye_reserve(set())
             packet = self._send(seq, name, *cuts[name], pending - i, reserve)
-            if packet is None:  # the rest wait their turn behind it
-                self.counts.waited += len(candidates) - i
-                break
+            if packet is None:
+                # The rest wait their turn behind it, but a blink: the bytes kept for the
+                # eyes are its own, and a region that waited longer cannot spend them.
+                self.counts.waited += 1
+                blocked = True
+                continue
             out.append(packet)
         return out
 
@@ -445,26 +457,27 @@ class RemEncoder:
         reserve: float,
     ) -> RemPatch | None:
         """A reference to an image the receiver holds that matches, else the image coded
-        to fit its share of what the bucket holds beyond ``reserve``; None, nothing spent,
-        when the bucket cannot pay."""
+        to fit its share of what the bucket holds beyond ``reserve`` (negative: into debt);
+        None, nothing spent, when the bucket cannot pay."""
         state = self.states[name]
+        available = self.tokens - reserve
         scores = [(self.change(name, patch, seen, img), i) for i, img in enumerate(state.choices())]
         score, i = min(scores)
         if score <= SAME_FRACTION and state.choices()[i] is not state.current:
             held = state.choices()[i]
-            if len(bytes(RemPatch.referring(seq, name, held.key, 0, 0, 0))) > self.tokens:
+            if len(bytes(RemPatch.referring(seq, name, held.key, 0, 0, 0))) > available:
                 return None  # (the colour, float32, does not change the size)
             packet = RemPatch.referring(seq, name, held.key, *self._stats())
-            self._pay(packet, repeat=False)
+            self._pay(packet, repeat=False, owed=True)
             state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
             return packet
-        available = self.tokens - reserve
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
             return None
         packet = RemPatch(seq, name, "webp", data, *self._stats())
-        if not self._pay(packet, repeat=False):
+        if len(bytes(packet)) > available:
             return None
+        self._pay(packet, repeat=False, owed=True)
         self._hold(state, _image(seq, patch, packet))
         state.waiting, state.score, state.dirty = 0, 0.0, True
         logger.debug("REM %s at frame %d: WebP q%d, %d bytes", name, seq, quality, len(data))

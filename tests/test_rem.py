@@ -378,15 +378,18 @@ def test_a_receiver_that_asks_gets_every_region_again(bundled: list[CapturedFram
         assert p.region in sent or p.reference == 0
 
 
+@pytest.mark.parametrize(("pose_share", "blink"), [(0.6, 250), (0.8, 140)])
 def test_a_blink_still_shows_when_the_geometry_is_coded_otherwise(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, pose_share: float, blink: int
 ) -> None:
     """When each patch goes depends on the geometry's bits: the eyes are cut through the
-    mesh the receiver rebuilds. With the head's pose coded at 0.6 of its steps, the right
-    eye at the clip's fifth blink (frame 250) matched its image held from the second blink a
-    frame before the left eye's change showed, and the left eye, no longer seen as half of a
-    blink, waited behind the bytes kept for the eyes: the picture showed the lids 7.9 px
-    apart where the truth has 3.9."""
+    mesh the receiver rebuilds. Two blinks went wrong with the head's pose coded otherwise:
+    - at 0.6 of its steps the right eye at the fifth blink (frame 250) matched its image
+      held from the second blink a frame before the left eye's change showed, and the left
+      eye, no longer seen as half of a blink, waited behind the bytes kept for the eyes
+      (the lids 11 px apart where the truth has 3.9);
+    - at 0.8 the mouth's inside, waiting longer, could not pay for its patch at the second
+      blink (frame 140), and both eyes waited behind it (11.5 px)."""
     import sender.encoder as encoder_module
     from models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION
 
@@ -395,25 +398,25 @@ def test_a_blink_still_shows_when_the_geometry_is_coded_otherwise(
     def finer_pose(*args: float) -> dict[str, float]:
         steps = plain(*args)
         for name in (POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION):
-            steps[name] *= 0.6
+            steps[name] *= pose_share
         return steps
 
     monkeypatch.setattr(encoder_module, "channel_steps", finer_pose)
     with VideoSource(demo_clip_path()) as video:
         frames = [
             CapturedFrame(f.index, f.image, round(f.index * 1e6 / 30.0))
-            for f in video.frames(limit=252)
+            for f in video.frames(limit=blink + 2)
         ]
-    call = in_process_call(frames, keep={250})
+    call = in_process_call(frames, keep={blink})
     truth = np.load(demo_clip_path().with_name("demo_clip_truth.npz"))
     names = truth["marker_names"].tolist()
     xy = truth["marker_xy"]
-    assert 250 in truth["blink_frames"]
+    assert blink in truth["blink_frames"]
     for side in ("right", "left"):
         up, low = names.index(f"upper_lid_{side}"), names.index(f"lower_lid_{side}")
-        true_gap = float(np.linalg.norm(xy[250, up] - xy[250, low]))
+        true_gap = float(np.linalg.norm(xy[blink, up] - xy[blink, low]))
         radius = float(np.linalg.norm(xy[0, up] - xy[0, low])) / 2 + 5
-        shown = lid_gap(call.pictures[250], xy[250, up], xy[250, low], radius)
+        shown = lid_gap(call.pictures[blink], xy[blink, up], xy[blink, low], radius)
         assert abs(shown - true_gap) <= 2.0, (side, shown, true_gap)
 
 
