@@ -44,6 +44,11 @@ HYSTERESIS = 0.25
 #: carphone's face SSIM 0.781 before it, 0.763 after at 0.5 px); at 0.4 px the call scores
 #: 0.763 instead of 0.755 through the real call for 1.37 kbit/s instead of 1.21.
 DEFAULT_ERROR_PX = 0.4
+#: The head's pose gets this share of the budget: it moves every pixel of the face at once,
+#: so a finer step there buys the most picture per bit (carphone: pose steps x0.5 gave +0.011
+#: face SSIM for 0.19 kbit/s, the wires' x0.5 +0.003 for 0.27; BENCHMARKS.md, "The pose's
+#: share of the error budget").
+POSE_SHARE = 0.8
 
 
 @dataclass(frozen=True)
@@ -130,6 +135,7 @@ def channel_steps(
     scale * d px, and a lips value (cm, its marker's vertex moves by it) scale * d px: its
     step is twice the budget's, the lips' parting being seen to about a pixel (at half the
     step carphone paid 0.09 kbit/s for it instead of 0.05, mostly for a shut mouth's jitter).
+    The pose's three channels get POSE_SHARE of the budget.
     """
     if not (face_radius_cm > 0 and scale_px_per_cm > 0 and error_px > 0):
         raise ValueError(
@@ -138,9 +144,9 @@ def channel_steps(
     budget = error_px / (0.5 + HYSTERESIS)
     radius_px = face_radius_cm * scale_px_per_cm
     return {
-        POSE_ROTATION: budget / radius_px,
-        POSE_SCALE: budget / radius_px,
-        POSE_TRANSLATION: budget,
+        POSE_ROTATION: POSE_SHARE * budget / radius_px,
+        POSE_SCALE: POSE_SHARE * budget / radius_px,
+        POSE_TRANSLATION: POSE_SHARE * budget,
         WIRE: budget / scale_px_per_cm,
         LIPS: 2 * budget / scale_px_per_cm,
     }

@@ -383,7 +383,8 @@ def test_a_blink_still_shows_when_the_geometry_is_coded_otherwise(
     monkeypatch: pytest.MonkeyPatch, pose_share: float, blink: int
 ) -> None:
     """When each patch goes depends on the geometry's bits: the eyes are cut through the
-    mesh the receiver rebuilds. Two blinks went wrong with the head's pose coded otherwise:
+    mesh the receiver rebuilds. Two blinks went wrong with the head's pose coded otherwise
+    (its steps as a share of the whole budget's):
     - at 0.6 of its steps the right eye at the fifth blink (frame 250) matched its image
       held from the second blink a frame before the left eye's change showed, and the left
       eye, no longer seen as half of a blink, waited behind the bytes kept for the eyes
@@ -391,14 +392,14 @@ def test_a_blink_still_shows_when_the_geometry_is_coded_otherwise(
     - at 0.8 the mouth's inside, waiting longer, could not pay for its patch at the second
       blink (frame 140), and both eyes waited behind it (11.5 px)."""
     import sender.encoder as encoder_module
-    from models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION
+    from models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_SHARE, POSE_TRANSLATION
 
     plain = encoder_module.channel_steps
 
     def finer_pose(*args: float) -> dict[str, float]:
         steps = plain(*args)
         for name in (POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION):
-            steps[name] *= pose_share
+            steps[name] *= pose_share / POSE_SHARE  # of the whole budget's step
         return steps
 
     monkeypatch.setattr(encoder_module, "channel_steps", finer_pose)
