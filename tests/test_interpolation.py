@@ -144,11 +144,9 @@ def test_the_head_turns_along_the_shortest_arc() -> None:
 
 def test_the_scene_moves_with_its_corners() -> None:
     still = np.eye(3)
-    moved = homography_from_corners(np.array([8.0, -4, 6, 2, -3, 5, 1, 1]), 640, 480)
+    moved = homography_from_corners(np.array([8.0, -4, 6, 2]), 640, 480)
     half = blend_camera(still, moved, 0.5, 640, 480)
-    assert np.allclose(
-        corners_from_homography(half, 640, 480), [4.0, -2, 3, 1, -1.5, 2.5, 0.5, 0.5]
-    )
+    assert np.allclose(corners_from_homography(half, 640, 480), [4.0, -2, 3, 1])
 
 
 def _rings(painter: Painter, a: FrameValues, b: FrameValues, t: float) -> np.ndarray:
