@@ -34,7 +34,12 @@ def call(clip: tuple[list, dict]) -> dict[str, dict[int, np.ndarray]]:
     from sender.encoder import FaceEncoder
 
     frames, truth = clip
-    encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
+    # No rate cap: these tests hold the coding to its error budget, frame by frame, and a
+    # frame the cap holds back (tests/test_rate_cap.py) shows the frame before it. The
+    # bundled clip's 1.49 kbit/s sits at the cap: here it held the surprise's frame 140.
+    encoder = FaceEncoder(
+        int(truth["width"]), int(truth["height"]), float(truth["fps"]), geometry_kbps=None
+    )
     snapshot = encoder.start(frames[0])
     assert snapshot is not None and encoder.wires is not None
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
