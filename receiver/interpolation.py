@@ -31,7 +31,6 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from models.blending import blend
 from models.camera import corners_from_homography, homography_from_corners
-from models.homotopy import MouthRig
 from models.pose import Pose
 from protocol.channels import FrameValues
 
@@ -115,7 +114,7 @@ class Painter:
     def __init__(self, decoder: FaceDecoder) -> None:
         self.decoder = decoder
         self.groups = decoder.wires.feature_groups()
-        self.mouth = MouthRig.from_rig(decoder.mesh, decoder.rig)
+        self.mouth = decoder.mouth.rig  # the decoder's own: the same rig, built once
         height, width = decoder.background.shape[:2]
         self.size = (width, height)
         self._last: tuple[FrameValues, np.ndarray] | None = None

@@ -417,10 +417,12 @@ class FaceEncoder:
             )
             if packet is not None and self.rate_cap is not None:
                 self.rate_cap.spend(len(bytes(packet)))
-        if result is not None and vertices is not None and self.points is not None:
+        if result is not None and vertices is not None:
+            assert self.points is not None and self.wires is not None  # as vertices were made
             pose, params = result
-            fitted = pose.apply(self.wires.deform(params)) if self.wires is not None else vertices
-            self.residual.add(frame.index, self.points, fitted, vertices)
+            self.residual.add(
+                frame.index, self.points, pose.apply(self.wires.deform(params)), vertices
+            )
         if self.rem is not None and isinstance(packet, KeyFrame):
             patches = self.rem.keyframe(frame.index, patches) + patches
         self._patches = patches

@@ -30,6 +30,7 @@ image while it has gone out only once, else as a reference.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -200,8 +201,8 @@ class RemEncoder:
             regions = tuple(n for n in SENT_REGIONS if n in layout.boxes)
         self.regions = tuple(regions)
         self.first_seq = first_seq
+        self.fps = fps
         self.rate = budget_kbps * 1000.0 / 8.0 / fps  # bytes per frame
-        self.rate_per_s = budget_kbps * 1000.0 / 8.0
         self.capacity = budget_kbps * 1000.0 / 8.0 * BUCKET_S
         self.tokens = budget_kbps * 1000.0 / 8.0 * START_S
         rasteriser = UvRasteriser(layout.triangles, layout.uvs, layout.patch_size)
@@ -438,7 +439,7 @@ class RemEncoder:
                 continue
             # A blink may borrow BLINK_DEBT_S of the budget, which the frames after it pay
             # back: its moment does not come again.
-            reserve = -BLINK_DEBT_S * self.rate_per_s if big else self._eye_reserve(set())
+            reserve = -BLINK_DEBT_S * self.rate * self.fps if big else self._eye_reserve(set())
             packet = self._send(seq, name, *cuts[name], pending - i, reserve)
             if packet is None:
                 # The rest wait their turn behind it, but a blink: the bytes kept for the
@@ -470,16 +471,15 @@ class RemEncoder:
             if len(bytes(RemPatch.referring(seq, name, held.key, 0, 0, 0))) > available:
                 return None  # (the colour, float32, does not change the size)
             packet = RemPatch.referring(seq, name, held.key, *self._stats())
-            self._pay(packet, repeat=False, owed=True)
+            self._pay(packet, repeat=False)
             state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
             return packet
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
             return None
         packet = RemPatch(seq, name, "webp", data, *self._stats())
-        if len(bytes(packet)) > available:
+        if not self._pay(packet, repeat=False, available=available):
             return None
-        self._pay(packet, repeat=False, owed=True)
         self._hold(state, _image(seq, patch, packet))
         state.waiting, state.score, state.dirty = 0, 0.0, True
         logger.debug("REM %s at frame %d: WebP q%d, %d bytes", name, seq, quality, len(data))
@@ -516,10 +516,11 @@ class RemEncoder:
             data, quality = coded, q
         return data, quality
 
-    def _pay(self, packet: RemPatch, repeat: bool, owed: bool = False) -> bool:
-        """Take the packet's bytes from the bucket (``owed``: even into debt)."""
+    def _pay(self, packet: RemPatch, repeat: bool, available: float = math.inf) -> bool:
+        """Take the packet's bytes from the bucket, into debt if need be; nothing, and
+        False, when they are more than ``available``."""
         size = len(bytes(packet))
-        if size > self.tokens and not owed:
+        if size > available:
             return False
         self.tokens -= size
         self.counts.add(packet, size, repeat)
@@ -558,9 +559,9 @@ class RemEncoder:
                 old = current.packet
                 assert old is not None
                 packet = RemPatch(seq, name, old.codec, old.data, h, s, v)
-            if not owed and len(bytes(packet)) > self.tokens - self._eye_reserve(set()):
+            available = math.inf if owed else self.tokens - self._eye_reserve(set())
+            if not self._pay(packet, repeat=True, available=available):
                 continue
-            self._pay(packet, repeat=True, owed=True)
             if packet.reference is None:
                 self._hold(state, _image(seq, current.content, packet, sent=current.sent + 1))
             state.dirty = False
