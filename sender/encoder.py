@@ -432,8 +432,10 @@ class FaceEncoder:
         self, floats: dict[str, np.ndarray], previous: dict[str, np.ndarray] | None
     ) -> dict[str, np.ndarray]:
         values = {}
+        # Under the rate cap the bucket's level widens the hysteresis (sender/rate_cap.py).
+        slack = 0.0 if self.rate_cap is None or previous is None else self.rate_cap.slack()
         for name, x in floats.items():
             prev = None if previous is None else previous[name]
-            values[name], clipped = quantise(x, self.steps[name], prev, HYSTERESIS)
+            values[name], clipped = quantise(x, self.steps[name], prev, HYSTERESIS + slack)
             self.values_clipped += clipped
         return values

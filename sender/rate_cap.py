@@ -5,7 +5,10 @@ costs follows the face: a talking head at 30 fps sends 1.2-1.45 kbit/s, a fast h
 shot (foreman) twice that. Over the budget, a frame's packet is held back: the receiver
 keeps drawing the last frame it has, as it does for a frame that needed no packet, and the
 next packet carries the motion since (one delta over several frames costs less than one
-per frame, headers included). Keyframes and frames that carry a REM patch always go; the
+per frame, headers included). Before it comes to that, the quantiser's hysteresis widens as
+the bucket runs low (:meth:`RateCap.slack`): a value then moves only for a larger change, so
+a face in motion sends fewer, coarser changes instead of losing whole frames, and a still one
+keeps the fine steps. Keyframes and frames that carry a REM patch always go; the
 bucket may then run into debt, which the frames after it wait out. Over any stretch of T
 seconds the packets carry at most ``GEOMETRY_KBPS * T`` plus the bucket's BUCKET_S seconds
 (and the keyframes and patch frames' debt, paid back by the frames after them).
@@ -20,6 +23,11 @@ BUCKET_S = 2.0
 #: What it holds at the start, seconds of budget: the session's first keyframe (about 30-40
 #: bytes), so the first frames after it need not wait.
 START_S = 0.25
+#: Below this many seconds of budget in the bucket, the quantiser's hysteresis widens ...
+LOW_S = 0.5
+#: ... by up to this many steps, when the bucket is empty (the most a value then errs is
+#: 0.5 + HYSTERESIS + SLACK_STEPS steps).
+SLACK_STEPS = 1.0
 
 
 class RateCap:
@@ -29,10 +37,17 @@ class RateCap:
         if not (kbps > 0 and fps > 0 and bucket_s > 0):
             raise ValueError(f"rate {kbps} kbit/s, {fps} fps and bucket {bucket_s} s must be > 0")
         self.per_frame = kbps * 1000.0 / 8.0 / fps
+        self.low = kbps * 1000.0 / 8.0 * LOW_S
+        self.slack_steps = SLACK_STEPS
         self.capacity = kbps * 1000.0 / 8.0 * bucket_s
         self.tokens = min(self.capacity, kbps * 1000.0 / 8.0 * START_S)
         #: Frames whose packet was held back.
         self.held = 0
+
+    def slack(self) -> float:
+        """Steps of hysteresis the quantiser adds for the next frame: none while the bucket
+        holds LOW_S of budget or more, rising linearly to ``slack_steps`` as it empties."""
+        return self.slack_steps * min(1.0, max(0.0, 1.0 - self.tokens / self.low))
 
     def next_frame(self) -> bool:
         """Add a frame's worth of bytes; whether the frame's packet may go."""

@@ -9,7 +9,7 @@ from protocol.packets import DeltaFrame, KeyFrame, decode
 from receiver.decoder import FaceDecoder
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
-from sender.rate_cap import START_S, RateCap
+from sender.rate_cap import LOW_S, SLACK_STEPS, START_S, RateCap
 
 FPS = 30.0
 
@@ -30,11 +30,26 @@ def test_the_bucket_fills_by_the_frame_and_lets_debt_be_paid_back() -> None:
         RateCap(0.0, FPS)
 
 
-def _call(frames: list[CapturedFrame], kbps: float | None) -> tuple[FaceEncoder, int, int]:
+def test_the_quantiser_loosens_as_the_bucket_runs_low() -> None:
+    cap = RateCap(1.2, FPS, bucket_s=1.0)  # 150 bytes a second
+    low = 150 * LOW_S
+    for tokens, slack in ((150.0, 0.0), (low, 0.0), (low / 2, SLACK_STEPS / 2), (0.0, SLACK_STEPS)):
+        cap.tokens = tokens
+        assert cap.slack() == pytest.approx(slack)
+    cap.tokens = -100.0  # in debt after a keyframe
+    assert cap.slack() == pytest.approx(SLACK_STEPS)
+
+
+def _call(
+    frames: list[CapturedFrame], kbps: float | None, slack_steps: float | None = None
+) -> tuple[FaceEncoder, int, int]:
     """Both ends over ``frames`` (packets as bytes); after every frame the sender's idea of
     what the receiver holds is what the receiver decoded. Returns the encoder, the frame
-    packets' bytes and the keyframes."""
+    packets' bytes and the keyframes. ``slack_steps``: the cap's, if not its own."""
     encoder = FaceEncoder(640, 480, FPS, rem=False, geometry_kbps=kbps)
+    if slack_steps is not None:
+        assert encoder.rate_cap is not None
+        encoder.rate_cap.slack_steps = slack_steps
     snapshot = encoder.start(frames[0], seq=0)
     assert snapshot is not None
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
@@ -58,20 +73,34 @@ def _call(frames: list[CapturedFrame], kbps: float | None) -> tuple[FaceEncoder,
     return encoder, nbytes, keyframes
 
 
-def test_a_call_over_its_cap_holds_frames_and_keeps_to_it() -> None:
-    """The bundled clip's first 5 s cost about 1.4 kbit/s; capped at 0.6 the sender holds
-    frames back, keeps to the cap (plus the bucket's start), still sends the periodic
-    keyframe, and the receiver always holds what the sender thinks it holds."""
+@pytest.fixture(scope="module")
+def clip() -> list[CapturedFrame]:
+    """The bundled clip's first 5 s."""
     with VideoSource(demo_clip_path()) as video:
-        frames = [
+        return [
             CapturedFrame(f.index, f.image, round(f.index * 1e6 / FPS))
             for f in video.frames(limit=150)
         ]
-    seconds = (len(frames) - 1) / FPS
-    free, free_bytes, _ = _call(frames, None)
+
+
+def test_a_call_over_its_cap_holds_frames_and_keeps_to_it(clip: list[CapturedFrame]) -> None:
+    """The bundled clip's first 5 s cost about 1.4 kbit/s; capped at 0.6 the sender holds
+    frames back, keeps to the cap (plus the bucket's start), still sends the periodic
+    keyframe, and the receiver always holds what the sender thinks it holds."""
+    seconds = (len(clip) - 1) / FPS
+    free, free_bytes, _ = _call(clip, None)
     assert free.rate_cap is None and free_bytes * 8 / seconds / 1000 > 1.0
-    capped, nbytes, keyframes = _call(frames, 0.6)
+    capped, nbytes, keyframes = _call(clip, 0.6)
     assert capped.rate_cap is not None and capped.rate_cap.held > 20
     assert keyframes == 2  # the first, and the periodic one at 4 s
     start = 0.6 * 1000 / 8 * START_S
     assert nbytes <= 0.6 * 1000 / 8 * seconds + start + 60  # the keyframe's debt at most
+
+
+def test_a_loosened_quantiser_holds_back_fewer_frames(clip: list[CapturedFrame]) -> None:
+    """Under the same cap, the hysteresis that widens as the bucket runs low sends coarser
+    changes instead of holding whole frames back: the face stops dead less often."""
+    loose, _, _ = _call(clip, 0.6)
+    strict, _, _ = _call(clip, 0.6, slack_steps=0.0)
+    assert loose.rate_cap is not None and strict.rate_cap is not None
+    assert loose.rate_cap.held < 0.8 * strict.rate_cap.held
