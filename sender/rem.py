@@ -62,8 +62,12 @@ CHANGE_FRACTION = 0.06
 #: An image the receiver holds stands for the region when it differs on at most this
 #: fraction of the texels.
 SAME_FRACTION = CHANGE_FRACTION / 2
-#: Seconds of budget a blink may borrow when the bucket cannot pay for both eyes.
+#: Seconds of budget a blink may borrow when the bucket cannot pay for both eyes ...
 BLINK_DEBT_S = 0.5
+#: ... as far as the call's REM traffic since it began stays under this average, kbit/s
+#: (DESIGN.md's limit on all REM traffic): over a short call a loan not yet paid back
+#: would show.
+LIMIT_KBPS = 4.0
 #: Frames an eye is taken to have waited already: ahead of a mouth that waited less longer.
 EYE_HEAD_START = 15
 #: An eye that changed on this fraction of its texels, with the other eye changed too (a
@@ -205,6 +209,10 @@ class RemEncoder:
         self.rate = budget_kbps * 1000.0 / 8.0 / fps  # bytes per frame
         self.capacity = budget_kbps * 1000.0 / 8.0 * BUCKET_S
         self.tokens = budget_kbps * 1000.0 / 8.0 * START_S
+        # Bytes the call could still have spent under LIMIT_KBPS on average since it began:
+        # never less than the bucket's tokens, as the bucket fills more slowly.
+        self.limit = LIMIT_KBPS * 1000.0 / 8.0 / fps
+        self.headroom = self.tokens
         rasteriser = UvRasteriser(layout.triangles, layout.uvs, layout.patch_size)
         self._triangles = layout.triangles
         self._samplers: dict[str, tuple[sp.csr_matrix, np.ndarray, np.ndarray]] = {}
@@ -388,6 +396,7 @@ class RemEncoder:
         the receiver's opening should show.
         """
         self.tokens = min(self.capacity, self.tokens + self.rate)
+        self.headroom += self.limit
         ext = self.layout.vertices(vertices)
         mouth = ext if tracked is None else self.layout.vertices(tracked)
         # The eyes are cut for their skin's colour even when they are not sent; the colour is
@@ -438,8 +447,9 @@ class RemEncoder:
                 self.counts.waited += 1
                 continue
             # A blink may borrow BLINK_DEBT_S of the budget, which the frames after it pay
-            # back: its moment does not come again.
-            reserve = -BLINK_DEBT_S * self.rate * self.fps if big else self._eye_reserve(set())
+            # back: its moment does not come again. The loan keeps within LIMIT_KBPS.
+            loan = min(BLINK_DEBT_S * self.rate * self.fps, max(0.0, self.headroom - self.tokens))
+            reserve = -loan if big else self._eye_reserve(set())
             packet = self._send(seq, name, *cuts[name], pending - i, reserve)
             if packet is None:
                 # The rest wait their turn behind it, but a blink: the bytes kept for the
@@ -523,6 +533,7 @@ class RemEncoder:
         if size > available:
             return False
         self.tokens -= size
+        self.headroom -= size
         self.counts.add(packet, size, repeat)
         return True
 

@@ -25,7 +25,7 @@ from receiver.decoder import FaceDecoder
 from receiver.rem import RemMerger
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
-from sender.rem import BUDGET_KBPS, encode_webp
+from sender.rem import BUCKET_S, BUDGET_KBPS, LIMIT_KBPS, encode_webp
 from sender.session import run_sender
 from sender.texture import UvRasteriser
 
@@ -291,15 +291,22 @@ class Call:
 
 
 def in_process_call(
-    frames: list[CapturedFrame], keep: set[int], regions: tuple[str, ...] | None = None
+    frames: list[CapturedFrame],
+    keep: set[int],
+    regions: tuple[str, ...] | None = None,
+    budget_kbps: float | None = None,
 ) -> Call:
     """Both ends over ``frames`` (packets as bytes, no sockets); the pictures of ``keep``;
-    the sender sends ``regions`` (default: its own choice)."""
+    the sender sends ``regions`` (default: its own choice) from a bucket filled at
+    ``budget_kbps`` (default: its own)."""
     encoder = FaceEncoder(640, 480, 30.0)
     snapshot = encoder.start(frames[0], seq=0)
     assert snapshot is not None and encoder.rem is not None
     if regions is not None:
         encoder.rem.regions = regions
+    if budget_kbps is not None:
+        encoder.rem.rate = budget_kbps * 1000 / 8 / 30.0
+        encoder.rem.capacity = encoder.rem.rate * 30.0 * BUCKET_S
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     pictures, patches, packets = {}, [], []
     try:
@@ -371,6 +378,21 @@ def test_rem_traffic_stays_within_its_budget(blink_call: Call) -> None:
     kbps = sum(len(bytes(p)) for p in blink_call.patches) * 8 / seconds / 1000
     assert 0.5 < kbps <= 4.0, kbps
     assert kbps <= BUDGET_KBPS * 1.1
+
+
+def test_a_blinks_loan_keeps_rem_traffic_under_its_limit_from_the_start(
+    bundled: list[CapturedFrame],
+) -> None:
+    """With the bucket filled at nearly the limit, what the blinks borrow would take the
+    traffic since the call began over LIMIT_KBPS (a short call never pays the loan back);
+    it may borrow only what the call has left unspent under it."""
+    call = in_process_call(bundled, keep=set(), budget_kbps=LIMIT_KBPS - 0.05)
+    sent = np.zeros(len(bundled))
+    for patch in call.patches:
+        sent[patch.seq] += len(bytes(patch))
+    allowed = LIMIT_KBPS * 1000 / 8 / 30.0 * np.arange(1, len(bundled) + 1)
+    assert sent.sum() > 0.8 * allowed[-1]  # the bucket was spent, loans were asked for
+    assert np.all(np.cumsum(sent) <= allowed + 1e-6), np.max(np.cumsum(sent) - allowed)
 
 
 def test_a_receiver_that_asks_gets_every_region_again(bundled: list[CapturedFrame]) -> None:
