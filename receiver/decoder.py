@@ -147,7 +147,7 @@ class FaceDecoder:
         # carried from there to wherever the face is drawn.
         self._outline = self.mesh.outline
         self.surround = SurroundWarp(
-            self.background, at_snapshot[self._outline, :2], person_mask(self.background)
+            self.background, at_snapshot[self._outline], person_mask(self.background)
         )
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
         self.renderer.render(self._drawn(at_snapshot))
@@ -268,7 +268,7 @@ class FaceDecoder:
     def draw_vertices(self, vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
         """:meth:`draw` from the face's (n, 3) vertices in image space (pixels)."""
         outline = vertices[self._outline, :2]
-        background = self.surround.warp(outline, camera)
+        background = self.surround.warp(vertices[self._outline], camera)
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))

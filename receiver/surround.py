@@ -9,9 +9,13 @@ used to be. Instead, every frame warps the snapshot frame with a thin-plate spli
   snapshot frame to where the rendered face puts it now, so the filled-in face stays under the
   rendered one and no hole opens;
 - head ring: the outline scaled about its centre by ``HEAD_REACH`` (hair, ears, chin) moves
-  with the similarity (shift, rotation, scale) that best maps the old outline to the new one;
-  below the mouth the ring moves less, fading to ``NECK_FOLLOW`` at the bottom, so the neck
-  bends instead of the shoulders flying with the head;
+  as a rigid part of the head: each of its points sits at the depth of its outline point, and
+  the 3D similarity (rotation, scale, shift) that best maps the old outline's upper part (the
+  jaw moves on its own) to the new one carries it. A head turning away carries its hair
+  round with it; a 2D similarity fitted to the outline's narrowing took the turn for a roll
+  and a shrink, and stretched the hair above into a cone. Below the mouth the ring moves
+  less, fading to ``NECK_FOLLOW`` at the bottom, so the neck bends instead of the shoulders
+  flying with the head;
 - still ring (the outline scaled by ``STILL_REACH``): stays put, and the head's part of the
   warp fades out just beyond it, so the background stays where the camera sees it. A camera
   homography, when given, moves the whole scene.
@@ -68,22 +72,33 @@ def _kernel(r2: np.ndarray) -> np.ndarray:
     return out
 
 
-def similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(2, 3) least-squares similarity (rotation, uniform scale, shift) taking ``src`` to
-    ``dst``, both (k, 2)."""
-    matrix, _ = cv2.estimateAffinePartial2D(
-        src.astype(np.float32), dst.astype(np.float32), method=cv2.LMEDS
-    )
-    if matrix is None:  # degenerate outline (all points together): follow the centre only
-        matrix = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-        matrix[:, 2] = dst.mean(0) - src.mean(0)
-    return np.asarray(matrix, dtype=np.float64)
+def similarity_3d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """(rotation (3, 3), scale, shift (3,)): the least-squares similarity taking ``src`` to
+    ``dst``, both (k, 3) (Umeyama 1991). Points all in one plane give that plane's 2D
+    similarity."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, sigma, vt = np.linalg.svd(b.T @ a / len(src))
+    sign = np.ones(3)
+    sign[2] = -1.0 if np.linalg.det(u @ vt) < 0 else 1.0  # a proper rotation, not a mirror
+    spread = float((a**2).sum()) / len(src)
+    if spread <= 0:  # all points together: follow their centre only
+        return np.eye(3), 1.0, mu_d - mu_s
+    rotation = (u * sign) @ vt
+    scale = float((sigma * sign).sum()) / spread
+    return rotation, scale, mu_d - scale * rotation @ mu_s
+
+
+def _in_space(outline: np.ndarray) -> np.ndarray:
+    """(k, 3) float64 outline points from (k, 3), or (k, 2) taken at depth 0."""
+    points = np.asarray(outline, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] not in (2, 3):
+        raise ValueError(f"expected a (k, 2) or (k, 3) outline, got {points.shape}")
+    return points if points.shape[1] == 3 else np.c_[points, np.zeros(len(points))]
 
 
 def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(2, 3) affine or (3, 3) homography applied to (k, 2) points."""
-    if matrix.shape == (2, 3):
-        return points @ matrix[:, :2].T + matrix[:, 2]
+    """(3, 3) homography applied to (k, 2) points."""
     h = np.c_[points, np.ones(len(points))] @ matrix.T
     return h[:, :2] / h[:, 2:3]
 
@@ -92,8 +107,8 @@ class SurroundWarp:
     """Warps the snapshot frame so the head's surroundings follow the face.
 
     background : (h, w, 3) uint8, the snapshot frame
-    outline : (k, 2) float, image pixels: the face outline (mesh boundary loop) where the
-        snapshot frame shows it
+    outline : (k, 3) float, image space (pixels; z away from the camera): the face outline
+        (mesh boundary loop) where the snapshot frame shows it; (k, 2) for a flat one
     person : optional (h, w) float in [0, 1], where the snapshot frame shows a person. Without
         it the whole frame is warped.
     """
@@ -101,12 +116,12 @@ class SurroundWarp:
     def __init__(
         self, background: np.ndarray, outline: np.ndarray, person: np.ndarray | None = None
     ) -> None:
-        outline = np.asarray(outline, dtype=np.float64)
-        if outline.ndim != 2 or outline.shape[1] != 2 or len(outline) < 3:
-            raise ValueError(f"expected (k, 2) outline with k >= 3, got {outline.shape}")
+        self._outline3 = _in_space(outline)
+        if len(self._outline3) < 3:
+            raise ValueError(f"expected an outline of 3 points or more, got {outline.shape}")
         self.background = background
         self.height, self.width = background.shape[:2]
-        self.outline = outline
+        self.outline = outline = self._outline3[:, :2]
         centre = outline.mean(0)
         self._head = centre + HEAD_REACH * (outline - centre)
         self._still = (centre + STILL_REACH * (outline - centre))[::2]
@@ -115,6 +130,11 @@ class SurroundWarp:
         mouth = centre[1] + 0.35 * (outline[:, 1].max() - centre[1])
         fade = np.clip((self._head[:, 1] - mouth) / max(bottom - mouth, 1e-6), 0.0, 1.0)
         self._follow = 1.0 - (1.0 - NECK_FOLLOW) * fade
+        # The head's motion is fitted on the outline above the mouth; the ring's points sit
+        # at their outline points' depth.
+        upper = outline[:, 1] <= mouth
+        self._upper = upper if upper.sum() >= 3 else np.ones(len(outline), bool)
+        self._head3 = np.c_[self._head, self._outline3[:, 2]]
         # Grid nodes where cv2.resize by GRID_STEP samples them ((j + 0.5) * step - 0.5), so
         # resizing the coarse map is exact bilinear interpolation between nodes.
         nx, ny = -(-self.width // GRID_STEP), -(-self.height // GRID_STEP)
@@ -155,13 +175,16 @@ class SurroundWarp:
         """(now, then): where each control point of the head is in this frame and in the
         snapshot frame (face outline, head ring, still ring).
 
-        ``outline`` (k, 2) is the face outline now; ``camera`` an optional (3, 3) homography
-        taking snapshot-frame background pixels to this frame's.
+        ``outline`` (k, 3) is the face outline now, image space ((k, 2): flat); ``camera`` an
+        optional (3, 3) homography taking snapshot-frame background pixels to this frame's.
         """
-        outline = np.asarray(outline, dtype=np.float64)
-        if outline.shape != self.outline.shape:
-            raise ValueError(f"expected outline {self.outline.shape}, got {outline.shape}")
-        head = _apply(similarity(self.outline, outline), self._head)
+        outline3 = _in_space(outline)
+        if outline3.shape != self._outline3.shape:
+            raise ValueError(f"expected outline of {len(self.outline)} points, got {outline.shape}")
+        upper = self._upper
+        rotation, scale, shift = similarity_3d(self._outline3[upper], outline3[upper])
+        head = (scale * self._head3 @ rotation.T + shift)[:, :2]
+        outline = outline3[:, :2]
         still = self._head if camera is None else _apply(camera, self._head)
         head = still + self._follow[:, None] * (head - still)
         ring = self._still if camera is None else _apply(camera, self._still)

@@ -66,6 +66,34 @@ def test_the_neck_follows_less_than_the_head() -> None:
     assert 5.0 < moved_chin < moved_top - 3.0
 
 
+def test_a_head_turning_away_carries_its_hair_round_without_a_roll() -> None:
+    """The outline as a head has it, in 3D: an oval whose sides lie deeper than its middle
+    (image space, z away from the camera). Turned 25 degrees about the vertical axis through
+    the head's centre, the outline narrows and its far side slides in; the head ring turns
+    with it: no point of it rises or sinks (a turn is no roll), and it narrows as the
+    outline does (a turn is no shrink). A 2D similarity fitted to the narrowed outline took
+    it for a shrink and a roll, and moved the hair above the forehead by 1.6 px here."""
+    flat = outline()
+    centre = flat.mean(0)
+    across = (flat[:, 0] - centre[0]) / 50.0
+    depth = 40.0 * (1.0 - np.sqrt(np.clip(1.0 - across**2, 0.0, 1.0)))  # sides 40 px deeper
+    then = np.c_[flat, depth]
+    pivot = np.array([centre[0], centre[1], 60.0])  # the head turns about its own centre
+    a = np.deg2rad(25.0)
+    yaw = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    now = (then - pivot) @ yaw.T + pivot
+    warp = SurroundWarp(noise_image(), then)
+    moved, before = warp.controls(now)
+    k = len(flat)
+    head_now, head_then = moved[k : 2 * k], before[k : 2 * k]
+    above = head_then[:, 1] < centre[1]  # above the mouth: the ring follows the head fully
+    assert np.abs(head_now[above, 1] - head_then[above, 1]).max() < 0.5
+    narrowing = np.ptp(now[:, 0]) / np.ptp(flat[:, 0])
+    assert np.ptp(head_now[above, 0]) / np.ptp(head_then[above, 0]) == pytest.approx(
+        narrowing, abs=0.05
+    )
+
+
 def test_camera_motion_moves_the_whole_scene() -> None:
     image = noise_image()
     o = outline()
@@ -79,7 +107,7 @@ def test_camera_motion_moves_the_whole_scene() -> None:
 
 def test_an_outline_of_another_size_is_refused() -> None:
     warp = SurroundWarp(noise_image(), outline())
-    with pytest.raises(ValueError, match=r"expected outline \(36, 2\), got \(20, 2\)"):
+    with pytest.raises(ValueError, match=r"expected outline of 36 points, got \(20, 2\)"):
         warp.warp(outline(k=20))
 
 
