@@ -96,6 +96,31 @@ def test_the_camera_shake_is_measured_on_the_background_not_the_person() -> None
     assert np.abs(corners_from_homography(truth, W, H)).max() > 5.0  # it did move
 
 
+def test_a_shake_seen_once_does_not_shift_the_scene_for_good() -> None:
+    """The camera shakes by 3 px once and comes back to rest; from then on most of the
+    background is a window whose view scrolls, so its points agree on no motion. The points
+    still at rest fit a still camera as well as the shake (better): the scene stops moving."""
+    scene = _scene()
+    rest = np.array([[1.0, 0.0, -40.0], [0.0, 1.0, -40.0]])
+    window = np.zeros((H, W), bool)
+    window[:, : int(0.7 * W)] = True
+    window &= ~person_mask((H, W), _outline())
+    passing = cv2.flip(scene, 1)  # the view through the window: its own texture
+
+    def view(camera: np.ndarray, scroll: float) -> np.ndarray:
+        image = _view(scene, camera, 0.0)
+        seen = cv2.warpAffine(passing, np.array([[1.0, 0, scroll - 40], [0, 1.0, -40]]), (W, H))
+        image[window] = seen[window]
+        return image
+
+    tracker = CameraTracker(view(rest, 0.0), _outline())
+    shaken = rest + [[0, 0, 3.0], [0, 0, 0]]
+    assert corners_from_homography(tracker.update(view(shaken, 3.0), _outline()), W, H)[0] > 2.0
+    for step in range(1, 6):
+        found = tracker.update(view(rest, 7.0 * step), _outline())
+    assert np.abs(corners_from_homography(found, W, H)).max() < 0.75
+
+
 def test_a_featureless_scene_keeps_the_camera_still() -> None:
     flat = np.full((H, W, 3), 128, np.uint8)
     tracker = CameraTracker(flat, _outline())
