@@ -14,6 +14,13 @@ logger = logging.getLogger(__name__)
 #: MPEG-4's quantiser scale (1 best .. 31): at 2 carphone's rebuilt face scores 0.7694 SSIM
 #: recorded against 0.7717 unrecorded; OpenCV's writer (its default rate) scored 0.7639.
 QSCALE = 2
+#: Frames of at most this many pixels (176x144 up to 320x240) are recorded as H.264 at
+#: H264_CRF instead: on a 40-60 px face MPEG-4's 8x8 blocks cost 0.001-0.003 face SSIM, which
+#: H.264 (4x4 transforms, deblocking) mostly keeps, for 0.3 ms a frame. From CIF up MPEG-4
+#: scored as well or better, in a quarter of the time (BENCHMARKS.md, "The recording of a
+#: small call").
+SMALL_PIXELS = 100_000
+H264_CRF = 9
 
 
 def padded_size(width: int, height: int) -> tuple[int, int]:
@@ -28,7 +35,8 @@ def crop_to(frame: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 class Mp4Recorder:
     """Writes BGR frames of one size to an MP4 file: MPEG-4 Part 2 through PyAV (4:2:0), which
-    plays everywhere and encodes a 640x480 frame in about 2 ms on one thread.
+    plays everywhere and encodes a 640x480 frame in about 2 ms on one thread; a small frame
+    (:data:`SMALL_PIXELS`) as H.264 (libx264, veryfast, CRF :data:`H264_CRF`).
 
     At a fixed, fine quantiser (:data:`QSCALE`): the recording is what a user keeps and what
     the benchmarks score. OpenCV's writer at its default rate cost carphone's rebuilt face
@@ -56,12 +64,16 @@ class Mp4Recorder:
         except (OSError, av.FFmpegError) as exc:
             raise OSError(f"cannot write video {self.path}: {exc}") from None
         rate = Fraction(fps).limit_denominator(1001)
-        self._stream = self._container.add_stream("mpeg4", rate=rate)
+        small = padded[0] * padded[1] <= SMALL_PIXELS
+        self._stream = self._container.add_stream("libx264" if small else "mpeg4", rate=rate)
         self._stream.width, self._stream.height = padded
         self._stream.pix_fmt = "yuv420p"
-        # A fixed quantiser, not a bit rate: every frame as fine as QSCALE.
-        self._stream.codec_context.qscale = True
-        self._stream.options = {"qmin": str(QSCALE), "qmax": str(QSCALE)}
+        # A fixed quality, not a bit rate: every frame as fine as H264_CRF or QSCALE.
+        if small:
+            self._stream.options = {"preset": "veryfast", "crf": str(H264_CRF)}
+        else:
+            self._stream.codec_context.qscale = True
+            self._stream.options = {"qmin": str(QSCALE), "qmax": str(QSCALE)}
         # One thread: the recording runs on a thread of its own beside the renderer.
         self._stream.thread_count = 1
         self.frames = 0
