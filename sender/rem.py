@@ -17,9 +17,12 @@ is coded as WebP at the best quality of :data:`QUALITIES` that fits its share of
 All of it is paid from a token bucket filled at :data:`BUDGET_KBPS`. The region that has
 waited longest goes first, the eyes with a head start of :data:`EYE_HEAD_START` frames (a
 blink lasts a few frames; a talking mouth changes all the time), and the mouth's inside may
-only spend what leaves room for both eyes. Every patch carries the frame's reference skin
-colour (peak hue, mean saturation and value over the eye regions: seed 003 section 2.3),
-which the receiver adapts the whole texture to (Eq. 2).
+only spend what leaves room for both eyes. Every patch carries the reference skin colour
+(peak hue, mean saturation and value over the eye regions: seed 003 section 2.3), which the
+receiver adapts the whole texture to (Eq. 2). It is measured every frame and followed over
+:data:`COLOUR_TIME_S`: one frame's, over the few dozen skin texels of two eye regions, moves
+by 5-10% with every blink and glance, and each patch then made the whole face brighter or
+darker.
 
 Keyframes repeat what a lost patch would have brought: a keyframe a receiver asked for (it
 just joined, or lost packets) repeats every region's image, one of the snapshot's as a
@@ -90,6 +93,11 @@ MOUTH_OPEN = 0.06
 PACKET_OVERHEAD = 40
 #: Texels on triangles seen more obliquely than this cosine keep the receiver's content.
 MIN_FACING = 0.15
+#: Time constant, seconds, of the reference colour the patches carry: each frame's
+#: measurement moves it by 1 / (COLOUR_TIME_S * fps) of the way. Slow enough to average the
+#: eyes' own changes out, fast enough to follow the light (BENCHMARKS.md, "A steadier
+#: reference colour").
+COLOUR_TIME_S = 1.5
 
 
 def _luma(bgr: np.ndarray) -> np.ndarray:
@@ -263,8 +271,9 @@ class RemEncoder:
         self._refresh_all = False
         self._smallest: dict[str, int] = {}  # region -> bytes of its last patch's lowest quality
         self.counts = RemCounts()
-        self.colour: ColourStats | None = None  # the reference colour of the frame sending
-        self._cuts: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # this frame's, for it
+        #: The reference colour the patches carry, followed frame by frame (None: no skin
+        #: measured yet).
+        self.colour: ColourStats | None = None
 
     def from_texture(self, texture: np.ndarray, name: str) -> np.ndarray:
         """Region ``name`` of a (T, T, 3) texture on the patch grid."""
@@ -399,8 +408,7 @@ class RemEncoder:
         self.headroom += self.limit
         ext = self.layout.vertices(vertices)
         mouth = ext if tracked is None else self.layout.vertices(tracked)
-        # The eyes are cut for their skin's colour even when they are not sent; the colour is
-        # measured only for a frame that sends something (_stats).
+        # The eyes are cut for their skin's colour even when they are not sent.
         wanted = self.regions + tuple(n for n in self._colour_regions if n not in self.regions)
         shut = MOUTH_INTERIOR in wanted and not self._mouth_open(mouth)
         cuts = {
@@ -408,7 +416,7 @@ class RemEncoder:
             for name in wanted
             if not (name == MOUTH_INTERIOR and shut)
         }
-        self._cuts, self.colour = cuts, None
+        self._follow_colour(cuts)
         candidates = []
         pending = 0  # regions changed, ready or still settling: they share the bucket
         for name in self.regions:
@@ -590,11 +598,26 @@ class RemEncoder:
         pixels = np.concatenate(hsv)[np.concatenate(mask)]
         return reference_colour(pixels[:, None, :])
 
+    def _follow_colour(self, cuts: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Move :attr:`colour` towards this frame's reference colour (``cuts``: the frame's
+        cut regions), 1 / (COLOUR_TIME_S * fps) of the way; the hue the short way round."""
+        frame = self._colour(cuts)
+        if frame is None:
+            return
+        if self.colour is None:
+            self.colour = frame
+            return
+        k = min(1.0, 1.0 / (COLOUR_TIME_S * self.fps))
+        old = self.colour
+        turn = (frame.h_peak - old.h_peak + 180.0) % 360.0 - 180.0
+        self.colour = ColourStats(
+            (old.h_peak + k * turn) % 360.0,
+            old.s_mean + k * (frame.s_mean - old.s_mean),
+            old.v_mean + k * (frame.v_mean - old.v_mean),
+        )
+
     def _stats(self) -> tuple[float, float, float]:
-        """The colour a patch carries: this frame's, else the snapshot's, else none (0)."""
-        if self.colour is None and self._cuts:
-            self.colour = self._colour(self._cuts)
-            self._cuts = {}
+        """The colour a patch carries: the followed one, else the snapshot's, else none (0)."""
         colour = self.colour or self.model_colour
         if colour is None:
             return (0.0, 0.0, 0.0)
