@@ -62,7 +62,7 @@ logger = logging.getLogger(__name__)
 KEYFRAME_INTERVAL_S = 4.0
 #: The face's budget is never finer than this share of a pixel of the landmark model's input
 #: (a 192-px crop 1.5 times the face's height): finer steps code the tracker's noise, not the
-#: face. It matters for large faces only (over about 150 px high at 0.4 px): the bundled
+#: face. It matters for large faces only (over about 90 px high at 0.25 px): the bundled
 #: clip's 223-px face gets 0.61 px, with the same marker error and blinks against its ground
 #: truth for 1.38 kbit/s instead of 1.77 (BENCHMARKS.md, "A large face's error budget").
 TRACKER_RESOLUTION_SHARE = 0.35
