@@ -73,7 +73,11 @@ def test_call_between_two_processes_with_keys(
     finally:
         sender.kill()
         receiver.kill()
-    assert sender.lines[-2:] == [
+    # On two busy cores a frame can wait 50 ms on loopback, and the receiver then asks for
+    # the second path (receiver/lateness.py): a notice of the designed response, not part of
+    # what this test checks.
+    said = [line for line in sender.lines if not line.startswith("the receiver sees late")]
+    assert said[-2:] == [
         "a receiver joined; sending",
         f"sent {FRAMES} frames (end of input); said bye",
     ]
