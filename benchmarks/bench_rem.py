@@ -52,7 +52,6 @@ from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E
 from sender.encoder import FaceEncoder  # noqa: E402
 from sender.landmarks import LandmarkTracker  # noqa: E402
 from sender.rate_cap import GEOMETRY_KBPS  # noqa: E402
-from sender.rem import BUCKET_S  # noqa: E402
 
 RIGHT_EYE = (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246)
 LEFT_EYE = (263, 249, 390, 373, 374, 380, 381, 382, 362, 398, 384, 385, 386, 387, 388, 466)
@@ -130,8 +129,7 @@ def call(
     snapshot = encoder.start(frames[0], seq=0)
     assert snapshot is not None, "no face in the first frame"
     if encoder.rem is not None and budget_kbps is not None:
-        encoder.rem.rate = budget_kbps * 1000 / 8 / fps
-        encoder.rem.capacity = encoder.rem.rate * fps * BUCKET_S
+        encoder.rem.set_budget(budget_kbps)
     if encoder.rem is not None and regions is not None:
         encoder.rem.regions = regions
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]

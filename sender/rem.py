@@ -214,8 +214,7 @@ class RemEncoder:
         self.regions = tuple(regions)
         self.first_seq = first_seq
         self.fps = fps
-        self.rate = budget_kbps * 1000.0 / 8.0 / fps  # bytes per frame
-        self.capacity = budget_kbps * 1000.0 / 8.0 * BUCKET_S
+        self.set_budget(budget_kbps)
         self.tokens = budget_kbps * 1000.0 / 8.0 * START_S
         # Bytes the call could still have spent under LIMIT_KBPS on average since it began:
         # never less than the bucket's tokens, as the bucket fills more slowly.
@@ -274,6 +273,11 @@ class RemEncoder:
         #: The reference colour the patches carry, followed frame by frame (None: no skin
         #: measured yet).
         self.colour: ColourStats | None = None
+
+    def set_budget(self, kbps: float) -> None:
+        """Fill the bucket at ``kbps`` from now on (it holds BUCKET_S of it)."""
+        self.rate = kbps * 1000.0 / 8.0 / self.fps  # bytes per frame
+        self.capacity = kbps * 1000.0 / 8.0 * BUCKET_S
 
     def from_texture(self, texture: np.ndarray, name: str) -> np.ndarray:
         """Region ``name`` of a (T, T, 3) texture on the patch grid."""

@@ -25,7 +25,7 @@ from receiver.decoder import FaceDecoder
 from receiver.rem import RemMerger
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
-from sender.rem import BUCKET_S, BUDGET_KBPS, LIMIT_KBPS, encode_webp
+from sender.rem import BUDGET_KBPS, LIMIT_KBPS, encode_webp
 from sender.session import run_sender
 from sender.texture import UvRasteriser
 
@@ -305,8 +305,7 @@ def in_process_call(
     if regions is not None:
         encoder.rem.regions = regions
     if budget_kbps is not None:
-        encoder.rem.rate = budget_kbps * 1000 / 8 / 30.0
-        encoder.rem.capacity = encoder.rem.rate * 30.0 * BUCKET_S
+        encoder.rem.set_budget(budget_kbps)
     decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     pictures, patches, packets = {}, [], []
     try:
