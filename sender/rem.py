@@ -174,9 +174,15 @@ class _Region:
     score: float = 0.0  # its change in the last frame (0: none)
     dirty: bool = False  # something was sent for it since the last keyframe
     changed_at: int = -(10**9)  # the last frame it was seen changed
+    sent_at: int = -(10**9)  # the frame of its last patch
 
     def choices(self) -> list[_Image]:
         return [self.base, *self.held]
+
+    def moving_on(self, seq: int) -> bool:
+        """Changed again just after its last patch went out: a lid the patch caught on its
+        way (a blink's half-shut frame), which is still the same blink."""
+        return seq - self.sent_at <= SETTLE_FRAMES
 
 
 def _image(key: int, content: np.ndarray, packet: RemPatch | None, sent: int = 1) -> _Image:
@@ -440,7 +446,7 @@ class RemEncoder:
             state.waiting += 1
             pending += 1
             rising, state.score = score > SETTLED * state.score, score
-            if rising and state.waiting < SETTLE_FRAMES:
+            if rising and state.waiting < SETTLE_FRAMES and not state.moving_on(seq):
                 continue  # a lid still closing: send where it comes to rest
             head = EYE_HEAD_START if name in EYES else 0
             weight = float((self.layout.boxes[name].alpha * seen).sum())
@@ -454,7 +460,8 @@ class RemEncoder:
         both = self.both_eyes_changed(seq)
         blocked = False
         for i, (_, _, name, score) in enumerate(candidates):
-            big = name in EYES and score >= BIG_CHANGE and both
+            moving_on = self.states[name].moving_on(seq)
+            big = name in EYES and (score >= BIG_CHANGE or moving_on) and both
             if blocked and not big:
                 self.counts.waited += 1
                 continue
@@ -495,6 +502,7 @@ class RemEncoder:
             packet = RemPatch.referring(seq, name, held.key, *self._stats())
             self._pay(packet, repeat=False)
             state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
+            state.sent_at = seq
             return packet
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
@@ -504,6 +512,7 @@ class RemEncoder:
             return None
         self._hold(state, _image(seq, patch, packet))
         state.waiting, state.score, state.dirty = 0, 0.0, True
+        state.sent_at = seq
         logger.debug("REM %s at frame %d: WebP q%d, %d bytes", name, seq, quality, len(data))
         return packet
 
