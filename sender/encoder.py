@@ -39,7 +39,7 @@ from models.mesh import FaceMesh, load_canonical
 from models.mouth_opening import LIPS_SIZE, MouthOpening
 from models.person import person_mask
 from models.pose import Pose, estimate_pose
-from models.rem import RemLayout
+from models.rem import EYES, RemLayout
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelEncoder, ChannelSpec
@@ -54,6 +54,7 @@ from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from sender.lift import MarkerFaceTracker, MarkerFit
 from sender.rate_cap import GEOMETRY_KBPS, RateCap
 from sender.rem import RemEncoder
+from sender.synthesis import FaceSynthesis
 from sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
@@ -126,7 +127,9 @@ class FaceEncoder:
     pixels at the call's size, raised for a large face to what the landmark tracker resolves
     (:data:`TRACKER_RESOLUTION_SHARE`). With ``smoothing`` (the default) the channel values are
     filtered over time before quantisation (:mod:`sender.channel_filter`): the tracker's
-    jitter is most of what would otherwise be sent.
+    jitter is most of what would otherwise be sent. With ``synthesis`` (the default) the
+    tracked landmarks are moved to where the face the receiver draws matches the frame before
+    they are fitted (:mod:`sender.synthesis`).
     """
 
     def __init__(
@@ -142,6 +145,7 @@ class FaceEncoder:
         smoothing: bool = True,
         rem: bool = True,
         geometry_kbps: float | None = GEOMETRY_KBPS,
+        synthesis: bool = True,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -183,6 +187,9 @@ class FaceEncoder:
         self._patches: list[RemPatch] = []
         #: The frame packets' rate cap (None: every frame that changed sends).
         self.rate_cap = None if geometry_kbps is None else RateCap(geometry_kbps, fps)
+        self.use_synthesis = synthesis
+        #: The receiver's drawing of the face, to move the tracked landmarks by (None: off).
+        self.synthesis: FaceSynthesis | None = None
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
@@ -229,6 +236,18 @@ class FaceEncoder:
             meta["rem_patch_size"] = patch_side
         self._patches = []
         self.session = SessionModel(mesh, texture, background)
+        if self.use_synthesis and not isinstance(self.tracker, MarkerFaceTracker):
+            # The texture as the receiver decodes it.
+            decoded = cv2.imdecode(np.frombuffer(texture_webp, np.uint8), cv2.IMREAD_COLOR)
+            assert decoded is not None, "the snapshot's own texture does not decode"
+            eyes = () if self.rem is None else tuple(n for n in EYES if n in self.rem.regions)
+            self.synthesis = FaceSynthesis(
+                mesh.triangles,
+                mesh.uvs,
+                decoded,
+                float(np.ptp(points[:, 0])),
+                () if self.rem is None else self.rem.layout.polygons(eyes),
+            )
         if isinstance(self.tracker, MarkerFaceTracker):
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
@@ -302,6 +321,8 @@ class FaceEncoder:
             points = pose.apply(base + found.displacement)
         else:
             points = found.points
+            if self.synthesis is not None:
+                points = self.synthesis.refine(image, points)
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
         self.points = points

@@ -31,6 +31,16 @@ def call(clip: tuple[list, dict]) -> dict[str, dict[int, np.ndarray]]:
     """Image-space vertices per frame of FRAMES: "rebuilt" by the receiver from the packets,
     "intended" by the sender (its fit, reduced to the wire basis and smoothed over time, before
     quantisation) and "fit" (the sender's full wire fit)."""
+    return _call(clip, synthesis=True)
+
+
+@pytest.fixture(scope="module")
+def tracked_call(clip: tuple[list, dict]) -> dict[str, dict[int, np.ndarray]]:
+    """:func:`call` from the landmarks as tracked, not moved by sender/synthesis.py."""
+    return _call(clip, synthesis=False)
+
+
+def _call(clip: tuple[list, dict], synthesis: bool) -> dict[str, dict[int, np.ndarray]]:
     from sender.encoder import FaceEncoder
 
     frames, truth = clip
@@ -38,7 +48,11 @@ def call(clip: tuple[list, dict]) -> dict[str, dict[int, np.ndarray]]:
     # frame the cap holds back (tests/test_rate_cap.py) shows the frame before it. The
     # bundled clip's 1.49 kbit/s sits at the cap: here it held the surprise's frame 140.
     encoder = FaceEncoder(
-        int(truth["width"]), int(truth["height"]), float(truth["fps"]), geometry_kbps=None
+        int(truth["width"]),
+        int(truth["height"]),
+        float(truth["fps"]),
+        geometry_kbps=None,
+        synthesis=synthesis,
     )
     snapshot = encoder.start(frames[0])
     assert snapshot is not None and encoder.wires is not None
@@ -107,12 +121,15 @@ def test_the_call_rebuilds_what_the_sender_meant_within_the_error_budget(call) -
         assert np.sqrt(np.mean(model**2)) < 0.04, (i, np.sqrt(np.mean(model**2)))
 
 
-def test_the_wire_basis_keeps_the_expression(call) -> None:
+def test_the_wire_basis_keeps_the_expression(tracked_call) -> None:
     # The 16-vector basis against the full 225-parameter fit: the expression's motion from
-    # the neutral first frame, in model space (head motion left out), is kept.
+    # the neutral first frame, in model space (head motion left out), is kept. Of the tracked
+    # landmarks: the moves sender/synthesis.py adds (where the texture matches, not an
+    # expression) the basis keeps only in part (the talking frame 220 loses 56 % of its
+    # motion with them, 19 % without), and the tests against the truth below take them in.
     for i in FRAMES[1:]:
-        full = call["fit_model"][i] - call["fit_model"][0]
-        reduced = call["reduced_model"][i] - call["reduced_model"][0]
+        full = tracked_call["fit_model"][i] - tracked_call["fit_model"][0]
+        reduced = tracked_call["reduced_model"][i] - tracked_call["reduced_model"][0]
         lost = np.sqrt(np.mean(np.sum((full - reduced) ** 2, axis=1)))
         moved = np.sqrt(np.mean(np.sum(full**2, axis=1)))
         assert lost < 0.25 * moved, (i, lost, moved)

@@ -36,11 +36,13 @@ def test_rms_px_is_the_image_plane_distance() -> None:
 
 
 def test_coarser_steps_move_the_sent_face_not_the_fit(frames) -> None:
-    fine, coarse = _residual(frames, 0.4), _residual(frames, 4.0)
+    fine, coarse = _residual(frames, 0.4), _residual(frames, 6.0)
     assert len(fine) == len(coarse) == FRAMES
     # The wire fit does not depend on the coding ...
     assert np.allclose(fine.fit, coarse.fit, atol=1e-4)
-    # ... the face sent does: 4 px steps leave it further from what the tracker saw.
+    # ... the face sent does: 6 px steps leave it further from what the tracker saw (1.6 px
+    # median at 0.4, 3.6 at 6; 4 px steps left 1.9 once the face was moved by
+    # sender/synthesis.py, whose moves the basis and smoothing keep only in part).
     assert np.median(coarse.sent) > np.median(fine.sent) + 0.5
     summary = fine.summary()
     assert summary["frames"] == FRAMES

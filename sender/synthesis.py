@@ -1,0 +1,151 @@
+"""Analysis by synthesis: the tracked face moved to where the receiver's picture matches the
+camera's.
+
+The receiver draws the snapshot's texture on the face as the sender tracked it, so what it
+shows is only as close to the camera as the tracker's landmarks are to the face. On real
+footage they are not close enough: a 40-100 px face is tracked to a pixel or two, and the
+tracker does not see how the skin moves between its landmarks. Drawn from the raw landmarks
+with no fitting or coding at all, suzie's face (176x144) scores 0.744 SSIM; moved by the
+optical flow from that drawing to the frame, the same landmarks score 0.827.
+
+The comparison is made in the texture, where it is cheap: the frame is unwrapped with the
+tracked vertices (as the snapshot's texture was, a remap), and the optical flow is measured
+from the snapshot's texture to it. Where the texture's content sits ``d`` texels away from
+where the snapshot has it, the vertices there are off by ``J d`` pixels, ``J`` the mesh's
+local map from texture to image. Each vertex moves by that, and the fit takes the moved face.
+No drawing and no OpenGL on the sender: 1.8 ms per frame at 640x480.
+
+Through the whole call, face SSIM rose by 0.00-0.05 and head SSIM by 0.01-0.06 on nine real
+clips (BENCHMARKS.md, "The face moved to where the picture matches").
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import scipy.sparse as sp
+
+from sender.texture import UvRasteriser
+
+#: The flow is measured on a texture about as many texels wide as the face is pixels wide,
+#: but at most this many (a power of two): a large face costs no more than a small one.
+WORK_TEXELS = 112
+#: Texels seen more obliquely than this cosine take no part: their pixels are smeared.
+MIN_FACING = 0.3
+#: Standard deviation (texels) of the Gaussian that smooths the flow before it is sampled at
+#: the vertices: the flow's own noise is finer than the mesh.
+FLOW_SIGMA = 2.0
+#: Largest move of a vertex, a fraction of the face's width: a hand over the face or a
+#: failed flow must not tear the mesh.
+MAX_MOVE = 0.08
+#: Triangles whose texture area is smaller than this (texels^2) give no local map: the strip
+#: that closes the mouth has a line of texture for its UVs.
+MIN_UV_AREA = 0.05
+
+
+class FaceSynthesis:
+    """Moves tracked vertices to where the snapshot's texture on them matches the frame.
+
+    triangles : (m, 3) int, the face mesh's
+    uvs : (n, 2) float, its texture coordinates (v = 0 at the top row)
+    texture : (T, T, 3) uint8 BGR, the snapshot's texture as the receiver decoded it
+    face_px : the face's width in the snapshot frame, pixels
+    patched : (k, 2) UV polygons of the regions whose picture REM patches carry (the eyes).
+        Their texels take no part in the flow: their vertices move as the skin around them
+        does. A patch is cut through the mesh of its frame and drawn on the mesh of later
+        ones, so lids the flow had pulled shut over a blink would draw it off its place.
+    """
+
+    def __init__(
+        self,
+        triangles: np.ndarray,
+        uvs: np.ndarray,
+        texture: np.ndarray,
+        face_px: float,
+        patched: tuple[np.ndarray, ...] = (),
+    ) -> None:
+        if texture.ndim != 3 or texture.shape[0] != texture.shape[1] or texture.dtype != np.uint8:
+            raise ValueError(f"expected a square uint8 BGR texture, got {texture.shape}")
+        self.triangles = np.asarray(triangles, dtype=np.int64)
+        uv = np.asarray(uvs, dtype=np.float64)
+        side = 1 << int(np.ceil(np.log2(max(16.0, min(float(face_px), WORK_TEXELS)))))
+        self.side = side
+        self._texels = UvRasteriser(self.triangles, uv, side)
+        self._patched = np.zeros((side, side), np.uint8)
+        for polygon in patched:
+            corners = np.round(np.asarray(polygon, np.float64) * side - 0.5).astype(np.int32)
+            cv2.fillPoly(self._patched, [corners], 1)
+        small = cv2.resize(texture, (side, side), interpolation=cv2.INTER_AREA)
+        self._reference = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
+        self._flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        # Each vertex's place in the work texture, and the inverse of each triangle's edge
+        # matrix there: with the image's edge matrix it gives the local map texture -> image.
+        self._at = (uv * side - 0.5).astype(np.float32)
+        t = self._at[self.triangles].astype(np.float64)
+        edges = np.stack([t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]], axis=2)  # (m, 2, 2)
+        area = np.abs(np.linalg.det(edges))
+        ok = area > MIN_UV_AREA
+        self._inverse = np.zeros_like(edges)
+        self._inverse[ok] = np.linalg.inv(edges[ok])
+        # A vertex's map: its triangles' maps, weighted by their texture area.
+        weight = np.where(ok, area, 0.0)
+        incidence = sp.csr_matrix(
+            (
+                np.repeat(weight, 3),
+                (self.triangles.ravel(), np.repeat(np.arange(len(self.triangles)), 3)),
+            ),
+            shape=(len(uv), len(self.triangles)),
+        )
+        total = np.asarray(incidence.sum(axis=1)).ravel()
+        self._has_map = total > 0
+        self._average = sp.diags(1.0 / np.where(total > 0, total, 1.0)) @ incidence
+
+    def unwrap(self, gray: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The (side, side) uint8 work texture of a grey frame with the face at ``vertices``
+        (the snapshot's texture where the frame does not show it) and where it does."""
+        points, facing = self._texels.texel_positions(vertices)
+        h, w = gray.shape
+        seen = (
+            (facing > MIN_FACING)
+            & (self._patched.ravel()[self._texels.covered_index] == 0)
+            & (points[:, 0] >= 0)
+            & (points[:, 0] <= w - 1)
+            & (points[:, 1] >= 0)
+            & (points[:, 1] <= h - 1)
+        )
+        s = self.side
+        index = self._texels.covered_index[seen]
+        map_x = np.zeros(s * s, np.float32)
+        map_y = np.zeros(s * s, np.float32)
+        map_x[index] = points[seen, 0]
+        map_y[index] = points[seen, 1]
+        texture = cv2.remap(gray, map_x.reshape(s, s), map_y.reshape(s, s), cv2.INTER_LINEAR)
+        seen_flat = np.zeros(s * s, dtype=bool)
+        seen_flat[index] = True
+        valid = seen_flat.reshape(s, s)
+        return np.where(valid, texture, self._reference), valid
+
+    def refine(self, image: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+        """(n, 3) ``vertices`` (the face as tracked in ``image`` (h, w, 3) BGR, pixels),
+        each seen one moved to where the snapshot's texture on it matches the frame."""
+        v = np.asarray(vertices, dtype=np.float64)
+        texture, valid = self.unwrap(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), v)
+        flow = self._flow.calc(
+            self._reference, texture, np.zeros((self.side, self.side, 2), np.float32)
+        )
+        flow = cv2.GaussianBlur(flow, (0, 0), FLOW_SIGMA)
+        x, y = self._at[None, :, 0], self._at[None, :, 1]
+        shift = cv2.remap(flow, x, y, cv2.INTER_LINEAR)[0].astype(np.float64)  # (n, 2) texels
+        seen_or_patched = (valid | (self._patched > 0)).astype(np.float32)
+        seen = cv2.remap(seen_or_patched, x, y, cv2.INTER_LINEAR)[0] > 0.99
+        corners = v[self.triangles, :2]
+        edges = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
+        maps = (self._average @ (edges @ self._inverse).reshape(-1, 4)).reshape(-1, 2, 2)
+        move = np.einsum("nij,nj->ni", maps, shift)
+        move[~(seen & self._has_map)] = 0.0
+        limit = MAX_MOVE * float(np.ptp(v[:, 0]))
+        length = np.linalg.norm(move, axis=1, keepdims=True)
+        move *= np.minimum(1.0, limit / np.maximum(length, 1e-9))
+        out = v.copy()
+        out[:, :2] += move
+        return out
