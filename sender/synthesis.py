@@ -15,8 +15,8 @@ where the snapshot has it, the vertices there are off by ``J d`` pixels, ``J`` t
 local map from texture to image. Each vertex moves by that, and the fit takes the moved face.
 No drawing and no OpenGL on the sender: 1.8 ms per frame at 640x480.
 
-Through the whole call, face SSIM rose by 0.00-0.05 and head SSIM by 0.01-0.06 on nine real
-clips (BENCHMARKS.md, "The face moved to where the picture matches").
+Through the whole call, face SSIM rose by 0.01-0.05 on six of seven real talking heads
+(carphone lost 0.003; BENCHMARKS.md, "The face moved to where the picture matches").
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import scipy.sparse as sp
 
 from sender.texture import UvRasteriser
 
-#: The flow is measured on a texture about as many texels wide as the face is pixels wide,
-#: but at most this many (a power of two): a large face costs no more than a small one.
+#: The flow is measured on a texture as wide as the face is pixels wide, or this many texels
+#: for a wider face, rounded up to a power of two: a large face costs no more than this.
 WORK_TEXELS = 112
 #: Texels seen more obliquely than this cosine take no part: their pixels are smeared.
 MIN_FACING = 0.3
