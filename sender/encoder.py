@@ -44,6 +44,7 @@ from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelEncoder, ChannelSpec
 from protocol.constants import UINT32_MAX
+from protocol.images import decode_image
 from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
 from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
@@ -237,16 +238,16 @@ class FaceEncoder:
         self._patches = []
         self.session = SessionModel(mesh, texture, background)
         if self.use_synthesis and not isinstance(self.tracker, MarkerFaceTracker):
-            # The texture as the receiver decodes it.
-            decoded = cv2.imdecode(np.frombuffer(texture_webp, np.uint8), cv2.IMREAD_COLOR)
-            assert decoded is not None, "the snapshot's own texture does not decode"
-            eyes = () if self.rem is None else tuple(n for n in EYES if n in self.rem.regions)
+            patched: tuple[np.ndarray, ...] = ()
+            if self.rem is not None:
+                sent = tuple(n for n in EYES if n in self.rem.regions)
+                patched = self.rem.layout.polygons(sent)
             self.synthesis = FaceSynthesis(
                 mesh.triangles,
                 mesh.uvs,
-                decoded,
+                decode_image(texture_webp, "snapshot texture"),  # as the receiver does
                 float(np.ptp(points[:, 0])),
-                () if self.rem is None else self.rem.layout.polygons(eyes),
+                patched,
             )
         if isinstance(self.tracker, MarkerFaceTracker):
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on

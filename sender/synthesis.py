@@ -71,10 +71,11 @@ class FaceSynthesis:
         side = 1 << int(np.ceil(np.log2(max(16.0, min(float(face_px), WORK_TEXELS)))))
         self.side = side
         self._texels = UvRasteriser(self.triangles, uv, side)
-        self._patched = np.zeros((side, side), np.uint8)
+        patched_texels = np.zeros((side, side), np.uint8)
         for polygon in patched:
             corners = np.round(np.asarray(polygon, np.float64) * side - 0.5).astype(np.int32)
-            cv2.fillPoly(self._patched, [corners], 1)
+            cv2.fillPoly(patched_texels, [corners], 1)
+        self._patched = patched_texels > 0
         small = cv2.resize(texture, (side, side), interpolation=cv2.INTER_AREA)
         self._reference = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
         self._flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -103,26 +104,8 @@ class FaceSynthesis:
     def unwrap(self, gray: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The (side, side) uint8 work texture of a grey frame with the face at ``vertices``
         (the snapshot's texture where the frame does not show it) and where it does."""
-        points, facing = self._texels.texel_positions(vertices)
-        h, w = gray.shape
-        seen = (
-            (facing > MIN_FACING)
-            & (self._patched.ravel()[self._texels.covered_index] == 0)
-            & (points[:, 0] >= 0)
-            & (points[:, 0] <= w - 1)
-            & (points[:, 1] >= 0)
-            & (points[:, 1] <= h - 1)
-        )
-        s = self.side
-        index = self._texels.covered_index[seen]
-        map_x = np.zeros(s * s, np.float32)
-        map_y = np.zeros(s * s, np.float32)
-        map_x[index] = points[seen, 0]
-        map_y[index] = points[seen, 1]
-        texture = cv2.remap(gray, map_x.reshape(s, s), map_y.reshape(s, s), cv2.INTER_LINEAR)
-        seen_flat = np.zeros(s * s, dtype=bool)
-        seen_flat[index] = True
-        valid = seen_flat.reshape(s, s)
+        texture, valid = self._texels.sample(gray, vertices, MIN_FACING, hidden=False)
+        valid &= ~self._patched
         return np.where(valid, texture, self._reference), valid
 
     def refine(self, image: np.ndarray, vertices: np.ndarray) -> np.ndarray:
@@ -136,7 +119,7 @@ class FaceSynthesis:
         flow = cv2.GaussianBlur(flow, (0, 0), FLOW_SIGMA)
         x, y = self._at[None, :, 0], self._at[None, :, 1]
         shift = cv2.remap(flow, x, y, cv2.INTER_LINEAR)[0].astype(np.float64)  # (n, 2) texels
-        seen_or_patched = (valid | (self._patched > 0)).astype(np.float32)
+        seen_or_patched = (valid | self._patched).astype(np.float32)
         seen = cv2.remap(seen_or_patched, x, y, cv2.INTER_LINEAR)[0] > 0.99
         corners = v[self.triangles, :2]
         edges = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)

@@ -252,16 +252,29 @@ class UvRasteriser:
         mesh, inside the frame). Invalid texels are filled from their valid neighbours so
         no black seams render.
         """
-        frame = _check_frame(frame_bgr)
+        texture, valid = self.sample(_check_frame(frame_bgr), image_vertices, min_facing)
+        return fill_invalid(texture, valid), valid
+
+    def sample(
+        self,
+        image: np.ndarray,
+        image_vertices: np.ndarray,
+        min_facing: float,
+        hidden: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`unwrap` of an (h, w) or (h, w, c) image without the filling: the texture
+        (what lies under invalid texels is undefined) and the (size, size) bool valid texels.
+        ``hidden`` False skips the test for texels behind another part of the mesh (a
+        z-buffer of the whole frame: most of the cost), leaving facing and in-frame."""
         pts, facing = self.texel_positions(image_vertices)
-        h, w = frame.shape[:2]
+        h, w = image.shape[:2]
         s = self.size
         map_x = np.full(s * s, -1.0, dtype=np.float32)
         map_y = np.full(s * s, -1.0, dtype=np.float32)
         map_x[self._flat_index] = pts[:, 0]
         map_y[self._flat_index] = pts[:, 1]
         texture = cv2.remap(
-            frame,
+            image,
             map_x.reshape(s, s),
             map_y.reshape(s, s),
             interpolation=cv2.INTER_LINEAR,
@@ -269,11 +282,11 @@ class UvRasteriser:
         )
         ok = facing > min_facing
         ok &= (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
-        ok[ok] = self._visible(image_vertices, pts[ok], w, h)
+        if hidden:
+            ok[ok] = self._visible(image_vertices, pts[ok], w, h)
         valid_flat = np.zeros(s * s, dtype=bool)
         valid_flat[self._flat_index] = ok
-        valid = valid_flat.reshape(s, s)
-        return fill_invalid(texture, valid), valid
+        return texture, valid_flat.reshape(s, s)
 
     def _visible(self, image_vertices: np.ndarray, pts: np.ndarray, w: int, h: int) -> np.ndarray:
         """(k,) bool: the points (k, 3) are the nearest surface at their pixel, and not on
