@@ -227,7 +227,6 @@ class RemLayout:
         polygons = {r.name: uv[list(r.polygon)] for r in rig.rem}
         lips = uv[list(rig.lips.contours[0])]
         polygons[MOUTH] = lips.mean(axis=0) + MOUTH_GROW * (lips - lips.mean(axis=0))
-        self._polygons = polygons
         self.boxes: dict[str, RemBox] = {}
         for name in regions:
             if name == MOUTH_INTERIOR:
@@ -284,10 +283,6 @@ class RemLayout:
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(self.boxes)
-
-    def polygons(self, names: tuple[str, ...]) -> tuple[np.ndarray, ...]:
-        """The (k, 2) UV polygons of those of ``names`` laid out in the face's own UVs."""
-        return tuple(self._polygons[n] for n in names if n in self.boxes and n in self._polygons)
 
     def vertices(self, vertices: np.ndarray) -> np.ndarray:
         """The layout mesh's vertices from the face's: (n, d) -> (n + k, d)."""

@@ -39,7 +39,7 @@ from models.mesh import FaceMesh, load_canonical
 from models.mouth_opening import LIPS_SIZE, MouthOpening
 from models.person import person_mask
 from models.pose import Pose, estimate_pose
-from models.rem import EYES, RemLayout
+from models.rem import RemLayout
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol.channels import ChannelEncoder, ChannelSpec
@@ -238,16 +238,11 @@ class FaceEncoder:
         self._patches = []
         self.session = SessionModel(mesh, texture, background)
         if self.use_synthesis and not isinstance(self.tracker, MarkerFaceTracker):
-            patched: tuple[np.ndarray, ...] = ()
-            if self.rem is not None:
-                sent = tuple(n for n in EYES if n in self.rem.regions)
-                patched = self.rem.layout.polygons(sent)
             self.synthesis = FaceSynthesis(
                 mesh.triangles,
                 mesh.uvs,
                 decode_image(texture_webp, "snapshot texture"),  # as the receiver does
                 float(np.ptp(points[:, 0])),
-                patched,
             )
         if isinstance(self.tracker, MarkerFaceTracker):
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on

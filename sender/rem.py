@@ -496,16 +496,13 @@ class RemEncoder:
         scores = [(self.change(name, patch, seen, img), i) for i, img in enumerate(state.choices())]
         score, i = min(scores)
         if score <= SAME_FRACTION and state.choices()[i] is not state.current:
-            held = state.choices()[i]
-            if len(bytes(RemPatch.referring(seq, name, held.key, 0, 0, 0))) > available:
-                return None  # (the colour, float32, does not change the size)
-            packet = RemPatch.referring(seq, name, held.key, *self._stats())
-            self._pay(packet, repeat=False)
-            state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
-            state.sent_at = seq
-            return packet
+            return self._refer(seq, name, state.choices()[i], available)
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
+            if score < CHANGE_FRACTION and state.choices()[i] is not state.current:
+                # No image fits, but one held would not count as changed: better than
+                # keeping what it shows (a lid caught reopening stays half shut otherwise).
+                return self._refer(seq, name, state.choices()[i], available)
             return None
         packet = RemPatch(seq, name, "webp", data, *self._stats())
         if not self._pay(packet, repeat=False, available=available):
@@ -514,6 +511,17 @@ class RemEncoder:
         state.waiting, state.score, state.dirty = 0, 0.0, True
         state.sent_at = seq
         logger.debug("REM %s at frame %d: WebP q%d, %d bytes", name, seq, quality, len(data))
+        return packet
+
+    def _refer(self, seq: int, name: str, held: _Image, available: float) -> RemPatch | None:
+        """A reference to image ``held`` of region ``name``, if ``available`` pays for it."""
+        if len(bytes(RemPatch.referring(seq, name, held.key, 0, 0, 0))) > available:
+            return None  # (the colour, float32, does not change the size)
+        packet = RemPatch.referring(seq, name, held.key, *self._stats())
+        self._pay(packet, repeat=False)
+        state = self.states[name]
+        state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
+        state.sent_at = seq
         return packet
 
     def _eye_reserve(self, but: set[str]) -> float:

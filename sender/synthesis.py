@@ -50,10 +50,9 @@ class FaceSynthesis:
     uvs : (n, 2) float, its texture coordinates (v = 0 at the top row)
     texture : (T, T, 3) uint8 BGR, the snapshot's texture as the receiver decoded it
     face_px : the face's width in the snapshot frame, pixels
-    patched : (k, 2) UV polygons of the regions whose picture REM patches carry (the eyes).
-        Their texels take no part in the flow: their vertices move as the skin around them
-        does. A patch is cut through the mesh of its frame and drawn on the mesh of later
-        ones, so lids the flow had pulled shut over a blink would draw it off its place.
+
+    The eyes take part like the rest of the face: over a blink the flow closes the lids on
+    the mesh, and the REM patch of the shut eye is cut through that mesh.
     """
 
     def __init__(
@@ -62,7 +61,6 @@ class FaceSynthesis:
         uvs: np.ndarray,
         texture: np.ndarray,
         face_px: float,
-        patched: tuple[np.ndarray, ...] = (),
     ) -> None:
         if texture.ndim != 3 or texture.shape[0] != texture.shape[1] or texture.dtype != np.uint8:
             raise ValueError(f"expected a square uint8 BGR texture, got {texture.shape}")
@@ -71,11 +69,6 @@ class FaceSynthesis:
         side = 1 << int(np.ceil(np.log2(max(16.0, min(float(face_px), WORK_TEXELS)))))
         self.side = side
         self._texels = UvRasteriser(self.triangles, uv, side)
-        patched_texels = np.zeros((side, side), np.uint8)
-        for polygon in patched:
-            corners = np.round(np.asarray(polygon, np.float64) * side - 0.5).astype(np.int32)
-            cv2.fillPoly(patched_texels, [corners], 1)
-        self._patched = patched_texels > 0
         small = cv2.resize(texture, (side, side), interpolation=cv2.INTER_AREA)
         self._reference = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
         self._flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -105,7 +98,6 @@ class FaceSynthesis:
         """The (side, side) uint8 work texture of a grey frame with the face at ``vertices``
         (the snapshot's texture where the frame does not show it) and where it does."""
         texture, valid = self._texels.sample(gray, vertices, MIN_FACING, hidden=False)
-        valid &= ~self._patched
         return np.where(valid, texture, self._reference), valid
 
     def refine(self, image: np.ndarray, vertices: np.ndarray) -> np.ndarray:
@@ -119,8 +111,7 @@ class FaceSynthesis:
         flow = cv2.GaussianBlur(flow, (0, 0), FLOW_SIGMA)
         x, y = self._at[None, :, 0], self._at[None, :, 1]
         shift = cv2.remap(flow, x, y, cv2.INTER_LINEAR)[0].astype(np.float64)  # (n, 2) texels
-        seen_or_patched = (valid | self._patched).astype(np.float32)
-        seen = cv2.remap(seen_or_patched, x, y, cv2.INTER_LINEAR)[0] > 0.99
+        seen = cv2.remap(valid.astype(np.float32), x, y, cv2.INTER_LINEAR)[0] > 0.99
         corners = v[self.triangles, :2]
         edges = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
         maps = (self._average @ (edges @ self._inverse).reshape(-1, 4)).reshape(-1, 2, 2)
