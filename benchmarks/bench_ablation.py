@@ -30,9 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_rem import REGIONS, call, scores  # noqa: E402
 
+from facewire.loopback import Loopback  # noqa: E402
 from models.face_channels import WIRE, pose_from_channels  # noqa: E402
-from protocol.packets import DeltaFrame, KeyFrame, decode  # noqa: E402
-from receiver.decoder import FaceDecoder  # noqa: E402
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
 from sender.encoder import FaceEncoder  # noqa: E402
 from sender.landmarks import LandmarkTracker  # noqa: E402
@@ -45,23 +44,15 @@ def geometry_steps(
 ) -> tuple[dict[str, list[np.ndarray]], int]:
     """Every frame drawn from each geometry step (REM off); the packets' bytes."""
     encoder = FaceEncoder(size[0], size[1], fps, rem=False)
-    snapshot = encoder.start(frames[0], seq=0)
-    assert snapshot is not None, "no face in the first frame"
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     outputs: dict[str, list[np.ndarray]] = {step: [] for step in STEPS}
     sent = 0
     last: dict[str, np.ndarray] = {}
-    values = None
-    try:
+    with Loopback(encoder, frames[0]) as both:
+        decoder = both.decoder
         for frame in frames:
             result = encoder.analyse(frame.image)
-            packet = encoder.encode_analysed(frame, result)
-            if packet is not None:
-                data = bytes(packet)
-                sent += len(data)
-                frame_packet = decode(data)
-                assert isinstance(frame_packet, (KeyFrame, DeltaFrame))
-                values = decoder.decode(frame_packet)
+            sent += sum(len(data) for data in both.step(frame, result))
+            values = both.shown
             assert values is not None, "the first frame sent nothing"
             camera = decoder.camera(values)
             if result is not None and encoder.points is not None and encoder.intended:
@@ -87,8 +78,6 @@ def geometry_steps(
             last["the call"] = decoder.reconstruct(values)
             for step in STEPS:
                 outputs[step].append(last.get(step, last["the call"]))
-    finally:
-        decoder.close()
     return outputs, sent
 
 

@@ -35,10 +35,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from facewire.loopback import Loopback  # noqa: E402
 from models.blending import blend  # noqa: E402
 from models.homotopy import MouthRig  # noqa: E402
 from models.pose import Pose  # noqa: E402
-from protocol.packets import DeltaFrame, KeyFrame, decode  # noqa: E402
 from receiver.decoder import FaceDecoder  # noqa: E402
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
 from sender.encoder import FaceEncoder  # noqa: E402
@@ -60,21 +60,13 @@ def sent_faces(path: Path) -> tuple[FaceDecoder, list[tuple[Pose, np.ndarray, np
         frames = [
             CapturedFrame(f.index, f.image, round(f.index * 1e6 / fps)) for f in video.frames()
         ]
-    encoder = FaceEncoder(size[0], size[1], fps, rem=False)
-    snapshot = encoder.start(frames[0], seq=0)
-    assert snapshot is not None, "no face in the first frame"
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    both = Loopback(FaceEncoder(size[0], size[1], fps, rem=False), frames[0])
     faces = []
-    values = None
     for frame in frames:
-        packet = encoder.encode(frame)
-        if packet is not None:
-            frame_packet = decode(bytes(packet))
-            assert isinstance(frame_packet, (KeyFrame, DeltaFrame))
-            values = decoder.decode(frame_packet)
-        assert values is not None, "the first frame sent nothing"
-        faces.append(decoder.parameters(values))
-    return decoder, faces
+        both.step(frame)
+        assert both.shown is not None, "the first frame sent nothing"
+        faces.append(both.decoder.parameters(both.shown))
+    return both.decoder, faces
 
 
 def score(path: Path, every: list[int]) -> None:

@@ -35,13 +35,13 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from facewire.loopback import Loopback  # noqa: E402
 from models.mesh import load_canonical  # noqa: E402
 from models.pose import Pose, estimate_pose  # noqa: E402
 from models.raycast import RayCaster, orthographic_rays  # noqa: E402
 from models.rig import load_rig  # noqa: E402
 from models.wires import WireDeformer  # noqa: E402
-from protocol.packets import decode  # noqa: E402
-from receiver.decoder import FaceDecoder  # noqa: E402
+from protocol.packets import RemPatch  # noqa: E402
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
 from sender.encoder import FaceEncoder  # noqa: E402
 from sender.lift import MarkerFaceTracker, MarkerLifter  # noqa: E402
@@ -189,23 +189,26 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
     rows: dict[str, list[str]] = {}
     for name, tracker in (("landmarks", None), ("markers", MarkerFaceTracker())):
         encoder = FaceEncoder(640, 480, fps, tracker=tracker)
-        snapshot = encoder.start(CapturedFrame(0, frames[0], 0))
-        assert snapshot is not None and encoder.wires is not None
-        decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-        shown = None
+        both = Loopback(encoder, CapturedFrame(0, frames[0], 0), seq=None)
+        decoder = both.decoder
+        assert encoder.wires is not None
         all_err, marker_err, wire_err, lids, wire_lids, sizes, times = [], [], [], [], [], [], []
         for i, image in enumerate(frames):
             frame = CapturedFrame(i, image, 0)
             t0 = time.perf_counter()
             result = encoder.analyse(image)
-            packet = encoder.encode_analysed(frame, result)
-            data = b"" if packet is None else bytes(packet)
+            sent = both.send(frame, result)
             times.append(time.perf_counter() - t0)
-            sizes.append(len(data))
-            if data:
-                shown = decoder.decode(decode(data))  # type: ignore[arg-type]
-            assert shown is not None
-            got = decoder.image_vertices(shown)
+            packets = both.receive(sent)
+            sizes.append(
+                sum(
+                    len(d)
+                    for d, p in zip(sent, packets, strict=True)
+                    if not isinstance(p, RemPatch)
+                )
+            )
+            assert both.shown is not None
+            got = decoder.image_vertices(both.shown)
             pose = Pose(truth["rotation"][i], truth["scale"][i], truth["translation"][i])
             want = pose.apply(truth_wires.deform(truth["wire_params"][i]))
             e = np.linalg.norm(got[:, :2] - want[:, :2], axis=1)
@@ -223,7 +226,7 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
                 if result is not None:
                     gap = [np.linalg.norm(w[a, :2] - w[b, :2]) for a, b in LIDS]
                     wire_lids.append(float(np.mean(gap)))
-        decoder.close()
+        both.close()
         a, m = np.concatenate(all_err), np.concatenate(marker_err)
         kbps = np.sum(sizes) * 8 * fps / len(frames) / 1000
         rows[name] = [

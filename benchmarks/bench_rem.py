@@ -44,10 +44,10 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from facewire.loopback import Loopback  # noqa: E402
 from facewire.quality import face_polygon, frame_scores, polygon_mask  # noqa: E402
 from models.rig import load_rig  # noqa: E402
-from protocol.packets import DeltaFrame, KeyFrame, RemPatch, decode  # noqa: E402
-from receiver.decoder import FaceDecoder  # noqa: E402
+from protocol.packets import RemPatch  # noqa: E402
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
 from sender.encoder import FaceEncoder  # noqa: E402
 from sender.landmarks import LandmarkTracker  # noqa: E402
@@ -126,50 +126,40 @@ def call(
 ) -> Run:
     """Both ends over ``frames``; every frame rebuilt (``geometry_kbps`` 0: no rate cap)."""
     encoder = FaceEncoder(size[0], size[1], fps, rem=rem, geometry_kbps=geometry_kbps or None)
-    snapshot = encoder.start(frames[0], seq=0)
-    assert snapshot is not None, "no face in the first frame"
-    if encoder.rem is not None and budget_kbps is not None:
-        encoder.rem.set_budget(budget_kbps)
-    if encoder.rem is not None and regions is not None:
-        encoder.rem.regions = regions
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-    if decoder.rem is not None:
-        decoder.rem.adapt_colour = adapt
     run = Run()
-    if encoder.rem is not None and decoder.rem is not None:
-        _timed(encoder.rem, "changed", run.rem_send_s)
-        _timed(encoder.rem, "keyframe", run.rem_send_s)
-        _timed(decoder, "add_patch", run.rem_receive_s)
-        _timed(decoder.rem, "due", run.rem_receive_s)
-        _timed(decoder.renderer, "set_texture", run.rem_receive_s)
-    last = None
-    try:
+    with Loopback(encoder, frames[0]) as both:
+        decoder = both.decoder
+        if encoder.rem is not None and budget_kbps is not None:
+            encoder.rem.set_budget(budget_kbps)
+        if encoder.rem is not None and regions is not None:
+            encoder.rem.regions = regions
+        if decoder.rem is not None:
+            decoder.rem.adapt_colour = adapt
+        if encoder.rem is not None and decoder.rem is not None:
+            _timed(encoder.rem, "changed", run.rem_send_s)
+            _timed(encoder.rem, "keyframe", run.rem_send_s)
+            _timed(decoder, "add_patch", run.rem_receive_s)
+            _timed(decoder.rem, "due", run.rem_receive_s)
+            _timed(decoder.renderer, "set_texture", run.rem_receive_s)
+        last = None
         for frame in frames:
             run.rem_send_s.append(0.0)
             run.rem_receive_s.append(0.0)
             t0 = time.perf_counter()
-            packet = encoder.encode(frame)
-            patches = [bytes(p) for p in encoder.take_patches()]
-            data = b"" if packet is None else bytes(packet)
+            sent = both.send(frame)
             run.send_s.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            for blob in patches:
-                patch = decode(blob)
-                assert isinstance(patch, RemPatch)
-                decoder.add_patch(patch)
-                run.rem_bytes += len(blob)
-                run.patches[patch.region] = run.patches.get(patch.region, 0) + 1
-            if data:
-                frame_packet = decode(data)
-                assert isinstance(frame_packet, (KeyFrame, DeltaFrame))
-                last = decoder.reconstruct(decoder.decode(frame_packet))
-                run.geometry_bytes += len(data)
+            for data, packet in zip(sent, both.receive(sent), strict=True):
+                if isinstance(packet, RemPatch):
+                    run.rem_bytes += len(data)
+                    run.patches[packet.region] = run.patches.get(packet.region, 0) + 1
+                else:
+                    last = both.picture()
+                    run.geometry_bytes += len(data)
             run.receive_s.append(time.perf_counter() - t0)
             assert last is not None
             run.outputs.append(last)
         run.receiver_counts = decoder.rem_counts()
-    finally:
-        decoder.close()
     return run
 
 

@@ -7,8 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from facewire.loopback import Loopback
 from models.face_channels import LIPS, WIRE, pose_from_channels
-from protocol.packets import DeltaFrame, KeyFrame, PacketError, decode
+from protocol.packets import PacketError
 from receiver.decoder import FaceDecoder, SnapshotError
 from sender.capture import VideoSource, demo_clip_path
 
@@ -54,9 +55,9 @@ def _call(clip: tuple[list, dict], synthesis: bool) -> dict[str, dict[int, np.nd
         geometry_kbps=None,
         synthesis=synthesis,
     )
-    snapshot = encoder.start(frames[0])
-    assert snapshot is not None and encoder.wires is not None
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
+    both = Loopback(encoder, frames[0], seq=None)
+    decoder = both.decoder
+    assert encoder.wires is not None
     out: dict[str, dict[int, np.ndarray]] = {
         k: {}
         for k in (
@@ -69,16 +70,12 @@ def _call(clip: tuple[list, dict], synthesis: bool) -> dict[str, dict[int, np.nd
             "reduced_model",
         )
     }
-    shown = None
     try:
         for f in frames:  # track every frame: the tracker follows from frame to frame
             result = encoder.analyse(f.image)
-            sent = encoder.encode_analysed(f, result)
-            if sent is not None:  # None: nothing changed, the receiver keeps the last frame
-                packet = decode(bytes(sent))
-                assert isinstance(packet, (KeyFrame, DeltaFrame))
-                shown = decoder.decode(packet)
-                assert shown.seq == f.index
+            if both.step(f, result):  # nothing sent: nothing changed, the receiver keeps it
+                assert both.shown is not None and both.shown.seq == f.index
+            shown = both.shown
             if f.index in FRAMES:
                 assert shown is not None and result is not None
                 pose, params = result
@@ -100,7 +97,7 @@ def _call(clip: tuple[list, dict], synthesis: bool) -> dict[str, dict[int, np.nd
                 out["fit_model"][f.index] = encoder.wires.deform(params)
                 out["reduced_model"][f.index] = encoder.wires.deform(reduced)
     finally:
-        decoder.close()
+        both.close()
     return out
 
 
@@ -176,21 +173,13 @@ def test_a_lost_frame_holds_the_face_instead_of_snapping_to_neutral(clip) -> Non
     frames, truth = clip
     blank = 62
     encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
-    snapshot = encoder.start(frames[0])
-    assert snapshot is not None
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     shown_at: dict[int, np.ndarray] = {}
-    shown = None
-    try:
+    with Loopback(encoder, frames[0], seq=None) as both:
         for f in frames[: blank + 3]:
             image = np.zeros_like(f.image) if f.index == blank else f.image
-            sent = encoder.encode(dataclasses.replace(f, image=image))
-            if sent is not None:
-                shown = decoder.decode(decode(bytes(sent)))  # type: ignore[arg-type]
-            assert shown is not None
-            shown_at[f.index] = decoder.image_vertices(shown)
-    finally:
-        decoder.close()
+            both.step(dataclasses.replace(f, image=image))
+            assert both.shown is not None
+            shown_at[f.index] = both.decoder.image_vertices(both.shown)
     assert encoder.frames_untracked == 1
     held = np.linalg.norm((shown_at[blank] - shown_at[blank - 1])[:, :2], axis=1)
     assert held.max() < 1.5, held.max()

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from facewire.loopback import Loopback
 from models.camera import corners_from_homography, homography_from_corners
 from models.face_channels import LIPS as LIPS_CHANNEL
 from models.face_channels import WIRE
 from models.pose import Pose
 from protocol.channels import FrameValues
-from protocol.packets import DeltaFrame, KeyFrame, decode
 from receiver.interpolation import Painter, blend_camera, blend_pose, blend_state
 from sender.capture import VideoSource, demo_clip_path
 
@@ -34,7 +34,6 @@ def _mouth_gap(vertices: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def frames():
     """A decoder of a real session and the values of the neutral and the blink frame."""
-    from receiver.decoder import FaceDecoder
     from sender.encoder import FaceEncoder
 
     with VideoSource(demo_clip_path()) as video:
@@ -43,30 +42,25 @@ def frames():
     # The landmarks as tracked: the lids' geometry must close at the blink for the curves to
     # show (moved by sender/synthesis.py, the eyes are the patches' and close less).
     encoder = FaceEncoder(first.shape[1], first.shape[0], 30.0, synthesis=False)
-    snapshot = encoder.start(clip[0])
-    assert snapshot is not None
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-    shown: dict[int, FrameValues] = {}
-    last = None
+    both = Loopback(encoder, clip[0], seq=None)
+    shown: dict[int, FrameValues | None] = {}
     for f in clip:
-        sent = encoder.encode(f)
-        packet = None if sent is None else decode(bytes(sent))
-        if isinstance(packet, (KeyFrame, DeltaFrame)):
-            last = decoder.decode(packet)
-        shown[f.index] = last
-    a = shown[NEUTRAL]
+        both.step(f)
+        shown[f.index] = both.shown
+    a, blink = shown[NEUTRAL], shown[BLINK]
+    assert a is not None and blink is not None
     # The blink frame's expression (wires and the inner lips) with the neutral frame's head and
     # camera: only the face moves between the two.
     b = FrameValues(
         a.seq + 1,
         a.capture_us + 33_333,
         {
-            name: (shown[BLINK].values[name] if name in (WIRE, LIPS_CHANNEL) else v)
+            name: (blink.values[name] if name in (WIRE, LIPS_CHANNEL) else v)
             for name, v in a.values.items()
         },
     )
-    yield decoder, a, b
-    decoder.close()
+    yield both.decoder, a, b
+    both.close()
 
 
 def test_eyes_and_mouth_move_on_their_own_curves(frames) -> None:

@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 from marker_clip import clip_frames, truth
 
+from facewire.loopback import Loopback
 from models.mesh import FaceMesh, load_canonical
 from models.pose import Pose
 from models.rig import load_rig
 from models.wires import WireDeformer
-from protocol.packets import decode
-from receiver.decoder import FaceDecoder
 from sender.capture import CapturedFrame
 from sender.encoder import FaceEncoder
 from sender.lift import MarkerFaceTracker, MarkerLifter, landmarks_on_markers
@@ -139,18 +138,14 @@ def rebuilt_markers(tracker: MarkerFaceTracker | None, frames: list) -> np.ndarr
     """The sender with ``tracker`` (None: the landmark tracker), its packets decoded by the
     receiver's decoder: (frames, k, 2) the rebuilt face's markers, px."""
     encoder = FaceEncoder(640, 480, 30.0, tracker=tracker)
-    snapshot = encoder.start(frames[0])
-    assert snapshot is not None
-    wanted = "markers" if tracker is not None else "mediapipe-landmarks"
-    assert snapshot.meta["tracker"] == wanted
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-    shown, out = None, []
-    for frame in frames:
-        packet = encoder.encode(frame)
-        if packet is not None:
-            shown = decoder.decode(decode(bytes(packet)))  # type: ignore[arg-type]
-        assert shown is not None
-        out.append(decoder.image_vertices(shown)[VERTICES, :2])
+    out = []
+    with Loopback(encoder, frames[0], seq=None) as both:
+        wanted = "markers" if tracker is not None else "mediapipe-landmarks"
+        assert both.snapshot.meta["tracker"] == wanted
+        for frame in frames:
+            both.step(frame)
+            assert both.shown is not None
+            out.append(both.decoder.image_vertices(both.shown)[VERTICES, :2])
     assert encoder.frames_untracked == 0
     return np.array(out)
 

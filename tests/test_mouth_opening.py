@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from facewire.loopback import Loopback
 from models.mesh import load_canonical
 from models.mouth_opening import LIPS_SIZE, MouthOpening
 from models.rig import load_rig
 from models.wires import WireDeformer
-from protocol.packets import DeltaFrame, KeyFrame, decode
-from receiver.decoder import FaceDecoder
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 
@@ -92,24 +91,14 @@ def test_an_open_jaw_is_rebuilt_as_open_as_tracked() -> None:
             for f in video.frames(limit=150)
         ]
     encoder = FaceEncoder(640, 480, 30.0, rem=False)
-    snapshot = encoder.start(frames[0])
-    assert snapshot is not None
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-    try:
-        widest = (0.0, 0.0)  # tracked, rebuilt
-        shown = None
+    widest = (0.0, 0.0)  # tracked, rebuilt
+    with Loopback(encoder, frames[0], seq=None) as both:
         for frame in frames:
-            packet = encoder.encode(frame)
-            if packet is not None:
-                decoded = decode(bytes(packet))
-                assert isinstance(decoded, (KeyFrame, DeltaFrame))
-                shown = decoder.decode(decoded)
-            assert shown is not None and encoder.points is not None
+            both.step(frame)
+            assert both.shown is not None and encoder.points is not None
             tracked = _gap(encoder.points)
             if tracked > widest[0]:
-                widest = (tracked, _gap(decoder.image_vertices(shown)))
-    finally:
-        decoder.close()
+                widest = (tracked, _gap(both.decoder.image_vertices(both.shown)))
     tracked, rebuilt = widest
     assert tracked > 15, widest  # the jaw did open
     assert abs(rebuilt - tracked) < 0.1 * tracked, widest

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol.packets import DeltaFrame, KeyFrame, decode
-from receiver.decoder import FaceDecoder
+from facewire.loopback import Loopback
+from protocol.packets import KeyFrame
 from sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from sender.encoder import FaceEncoder
 from sender.rate_cap import LOW_S, SLACK_STEPS, START_S, RateCap
@@ -50,26 +50,16 @@ def _call(
     if slack_steps is not None:
         assert encoder.rate_cap is not None
         encoder.rate_cap.slack_steps = slack_steps
-    snapshot = encoder.start(frames[0], seq=0)
-    assert snapshot is not None
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     nbytes = keyframes = 0
-    try:
-        shown = None
+    with Loopback(encoder, frames[0]) as both:
         for frame in frames[1:]:
-            packet = encoder.encode(frame)
-            if packet is not None:
-                data = bytes(packet)
-                nbytes += len(data)
-                decoded = decode(data)
-                assert isinstance(decoded, (KeyFrame, DeltaFrame))
-                keyframes += isinstance(decoded, KeyFrame)
-                shown = decoder.decode(decoded)
+            sent = both.send(frame)
+            nbytes += sum(len(data) for data in sent)
+            keyframes += sum(isinstance(p, KeyFrame) for p in both.receive(sent))
+            shown = both.shown
             assert shown is not None and encoder.values is not None
             for name, value in encoder.values.items():
                 assert np.array_equal(shown.values[name], value), (frame.index, name)
-    finally:
-        decoder.close()
     return encoder, nbytes, keyframes
 
 

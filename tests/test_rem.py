@@ -13,6 +13,7 @@ import pytest
 from call_helpers import HOST, Keys, ReceiverProcess, start_sender, wait_ready
 from imaging import save
 
+from facewire.loopback import Loopback
 from models.colour import adapt, reference_colour, to_bgr, to_hsv
 from models.mesh import FaceMesh, load_canonical
 from models.rem import EYES, MOUTH_INTERIOR, RemLayout
@@ -296,34 +297,25 @@ def in_process_call(
     regions: tuple[str, ...] | None = None,
     budget_kbps: float | None = None,
 ) -> Call:
-    """Both ends over ``frames`` (packets as bytes, no sockets); the pictures of ``keep``;
-    the sender sends ``regions`` (default: its own choice) from a bucket filled at
-    ``budget_kbps`` (default: its own)."""
+    """Both ends over ``frames`` (facewire.loopback); the pictures of ``keep``; the sender
+    sends ``regions`` (default: its own choice) from a bucket filled at ``budget_kbps``
+    (default: its own)."""
     encoder = FaceEncoder(640, 480, 30.0)
-    snapshot = encoder.start(frames[0], seq=0)
-    assert snapshot is not None and encoder.rem is not None
-    if regions is not None:
-        encoder.rem.regions = regions
-    if budget_kbps is not None:
-        encoder.rem.set_budget(budget_kbps)
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
     pictures, patches, packets = {}, [], []
-    try:
-        shown = None
+    with Loopback(encoder, frames[0]) as call:
+        assert encoder.rem is not None
+        if regions is not None:
+            encoder.rem.regions = regions
+        if budget_kbps is not None:
+            encoder.rem.set_budget(budget_kbps)
         for frame in frames:
-            packet = encoder.encode(frame)
-            for patch in encoder.take_patches():
-                patches.append(patch)
-                packets.append(bytes(patch))
-                assert decoder.add_patch(decode(bytes(patch)))  # type: ignore[arg-type]
-            if packet is not None:
-                packets.append(bytes(packet))
-                shown = decoder.decode(decode(bytes(packet)))  # type: ignore[arg-type]
+            sent = call.send(frame)
+            received = call.receive(sent)
+            patches += [p for p in received if isinstance(p, RemPatch)]
+            packets += sent
             if frame.index in keep:
-                assert shown is not None
-                pictures[frame.index] = decoder.reconstruct(shown)
-    finally:
-        decoder.close()
+                pictures[frame.index] = call.picture()
+        assert call.refused == 0
     return Call(frames, pictures, patches, packets, encoder)
 
 

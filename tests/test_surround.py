@@ -172,9 +172,8 @@ def _frame(face: np.ndarray, angle: float, shift: tuple[float, float]) -> np.nda
 
 
 def test_hair_follows_the_head_and_no_old_face_shows(tmp_path: Path) -> None:
+    from facewire.loopback import Loopback
     from models.mesh import load_canonical
-    from protocol.packets import decode
-    from receiver.decoder import FaceDecoder
     from sender.capture import CapturedFrame
     from sender.encoder import FaceEncoder
     from sender.landmarks import LandmarkTracker
@@ -183,19 +182,10 @@ def test_hair_follows_the_head_and_no_old_face_shows(tmp_path: Path) -> None:
     face = cv2.imread(str(FIXTURE))
     first, moved = _frame(face, 0.0, (0.0, 0.0)), _frame(face, 7.0, (26.0, 10.0))
     encoder = FaceEncoder(W, H, 30.0)
-    snapshot = encoder.start(CapturedFrame(0, first, 0))
-    assert snapshot is not None
-    decoder = FaceDecoder(decode(bytes(snapshot)))  # type: ignore[arg-type]
-    try:
-        values = None
+    with Loopback(encoder, CapturedFrame(0, first, 0), seq=None) as both:
         for i, image in enumerate([first, moved, moved, moved], start=0):
-            packet = encoder.encode(CapturedFrame(i, image, i * 33_333))
-            if packet is not None:
-                values = decoder.decode(decode(bytes(packet)))  # type: ignore[arg-type]
-        assert values is not None
-        rebuilt = decoder.reconstruct(values)
-    finally:
-        decoder.close()
+            both.step(CapturedFrame(i, image, i * 33_333))
+        rebuilt = both.picture()
     cv2.imwrite(str(tmp_path / "rebuilt.png"), np.hstack([moved, rebuilt]))
     tracker, triangles = LandmarkTracker(), load_canonical().triangles
     was, now = (
