@@ -93,6 +93,12 @@ class FaceSynthesis:
         total = np.asarray(incidence.sum(axis=1)).ravel()
         self._has_map = total > 0
         self._average = sp.diags(1.0 / np.where(total > 0, total, 1.0)) @ incidence
+        # Which vertices share an edge: a move spreads from seen vertices to their neighbours.
+        a, b = self.triangles[:, [0, 1, 2]].ravel(), self.triangles[:, [1, 2, 0]].ravel()
+        self._neighbours = sp.csr_matrix(
+            (np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(len(uv), len(uv))
+        )
+        self._neighbours.data[:] = 1.0  # an edge of two triangles counts once
 
     def unwrap(self, gray: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The (side, side) uint8 work texture of a grey frame with the face at ``vertices``
@@ -116,7 +122,21 @@ class FaceSynthesis:
         edges = np.stack([corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]], axis=2)
         maps = (self._average @ (edges @ self._inverse).reshape(-1, 4)).reshape(-1, 2, 2)
         move = np.einsum("nij,nj->ni", maps, shift)
-        move[~(seen & self._has_map)] = 0.0
+        known = seen & self._has_map
+        move[~known] = 0.0
+        # A vertex the flow cannot see (the outline's, seen edge-on) moves as its seen
+        # neighbours do, ring by ring from them: left where the tracker put it while the face
+        # beside it moves, it pulled the face's edge off the picture's. Not off the frame.
+        h, w = image.shape[:2]
+        reachable = (v[:, 0] >= 0) & (v[:, 0] <= w - 1) & (v[:, 1] >= 0) & (v[:, 1] <= h - 1)
+        while True:
+            count = self._neighbours @ known.astype(np.float64)
+            fill = reachable & ~known & (count > 0)
+            if not fill.any():
+                break
+            total = self._neighbours @ (move * known[:, None])
+            move[fill] = total[fill] / count[fill, None]
+            known |= fill
         limit = MAX_MOVE * float(np.ptp(v[:, 0]))
         length = np.linalg.norm(move, axis=1, keepdims=True)
         move *= np.minimum(1.0, limit / np.maximum(length, 1e-9))
