@@ -12,11 +12,13 @@ The comparison is made in the texture, where it is cheap: the frame is unwrapped
 tracked vertices (as the snapshot's texture was, a remap), and the optical flow is measured
 from the snapshot's texture to it. Where the texture's content sits ``d`` texels away from
 where the snapshot has it, the vertices there are off by ``J d`` pixels, ``J`` the mesh's
-local map from texture to image. Each vertex moves by that, and the fit takes the moved face.
-No drawing and no OpenGL on the sender: 1.8 ms per frame at 640x480.
+local map from texture to image. Each vertex moves by that; one the flow cannot see (the
+outline, seen edge-on) moves as its seen neighbours do. The fit takes the moved face. No
+drawing and no OpenGL on the sender: about 1.9 ms per frame at 640x480.
 
-Through the whole call, face SSIM rose by 0.01-0.05 on six of seven real talking heads
-(carphone lost 0.003; BENCHMARKS.md, "The face moved to where the picture matches").
+Through the whole call, face SSIM rose by 0.02-0.06 on five of seven real talking heads
+(Miss America +0.006, carphone -0.002; BENCHMARKS.md, "The face moved to where the picture
+matches" and "The eyes in the flow").
 """
 
 from __future__ import annotations
