@@ -239,8 +239,7 @@ class FaceEncoder:
         self.session = SessionModel(mesh, texture, background)
         if self.use_synthesis and not isinstance(self.tracker, MarkerFaceTracker):
             self.synthesis = FaceSynthesis(
-                mesh.triangles,
-                mesh.uvs,
+                mesh,
                 decode_image(texture_webp, "snapshot texture"),  # as the receiver does
                 float(np.ptp(points[:, 0])),
             )

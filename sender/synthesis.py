@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
+from models.mesh import FaceMesh
 from sender.texture import UvRasteriser
 
 #: The flow is measured on a texture as wide as the face is pixels wide, or this many texels
@@ -48,8 +49,7 @@ MIN_UV_AREA = 0.05
 class FaceSynthesis:
     """Moves tracked vertices to where the snapshot's texture on them matches the frame.
 
-    triangles : (m, 3) int, the face mesh's
-    uvs : (n, 2) float, its texture coordinates (v = 0 at the top row)
+    mesh : the face mesh (its triangles, texture coordinates and vertex adjacency)
     texture : (T, T, 3) uint8 BGR, the snapshot's texture as the receiver decoded it
     face_px : the face's width in the snapshot frame, pixels
 
@@ -59,15 +59,14 @@ class FaceSynthesis:
 
     def __init__(
         self,
-        triangles: np.ndarray,
-        uvs: np.ndarray,
+        mesh: FaceMesh,
         texture: np.ndarray,
         face_px: float,
     ) -> None:
         if texture.ndim != 3 or texture.shape[0] != texture.shape[1] or texture.dtype != np.uint8:
             raise ValueError(f"expected a square uint8 BGR texture, got {texture.shape}")
-        self.triangles = np.asarray(triangles, dtype=np.int64)
-        uv = np.asarray(uvs, dtype=np.float64)
+        self.triangles = np.asarray(mesh.triangles, dtype=np.int64)
+        uv = np.asarray(mesh.uvs, dtype=np.float64)
         side = 1 << int(np.ceil(np.log2(max(16.0, min(float(face_px), WORK_TEXELS)))))
         self.side = side
         self._texels = UvRasteriser(self.triangles, uv, side)
@@ -96,11 +95,7 @@ class FaceSynthesis:
         self._has_map = total > 0
         self._average = sp.diags(1.0 / np.where(total > 0, total, 1.0)) @ incidence
         # Which vertices share an edge: a move spreads from seen vertices to their neighbours.
-        a, b = self.triangles[:, [0, 1, 2]].ravel(), self.triangles[:, [1, 2, 0]].ravel()
-        self._neighbours = sp.csr_matrix(
-            (np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(len(uv), len(uv))
-        )
-        self._neighbours.data[:] = 1.0  # an edge of two triangles counts once
+        self._neighbours = mesh.adjacency
 
     def unwrap(self, gray: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The (side, side) uint8 work texture of a grey frame with the face at ``vertices``

@@ -28,7 +28,7 @@ def photo():
     image = cv2.imread(str(FIXTURE))
     points = LandmarkTracker().track(image).points
     texture, _ = UvRasteriser(mesh.triangles, mesh.uvs, 256).unwrap(image, points)
-    synthesis = FaceSynthesis(mesh.triangles, mesh.uvs, texture, float(np.ptp(points[:, 0])))
+    synthesis = FaceSynthesis(mesh, texture, float(np.ptp(points[:, 0])))
     return image, points, synthesis
 
 
