@@ -51,7 +51,9 @@ def geometry_steps(
         decoder = both.decoder
         for frame in frames:
             result = encoder.analyse(frame.image)
-            sent += sum(len(data) for data in both.step(frame, result))
+            packets = both.send_analysed(frame, result)
+            both.receive(packets)
+            sent += sum(len(data) for data in packets)
             values = both.shown
             assert values is not None, "the first frame sent nothing"
             camera = decoder.camera(values)

@@ -197,7 +197,7 @@ def rebuilt(frames: list[np.ndarray], truth: dict[str, Any]) -> None:
             frame = CapturedFrame(i, image, 0)
             t0 = time.perf_counter()
             result = encoder.analyse(image)
-            sent = both.send(frame, result)
+            sent = both.send_analysed(frame, result)
             times.append(time.perf_counter() - t0)
             packets = both.receive(sent)
             sizes.append(

@@ -27,9 +27,6 @@ if TYPE_CHECKING:
     from sender.capture import CapturedFrame
     from sender.encoder import FaceEncoder
 
-#: ``send``'s default: the encoder analyses the frame itself.
-ANALYSE = object()
-
 
 class Loopback:
     """One session: ``encoder`` started on ``first`` (frame number ``seq``), and a receiver
@@ -48,15 +45,16 @@ class Loopback:
         #: Patch packets the receiver could not use (see FaceDecoder.add_patch).
         self.refused = 0
 
-    def send(
-        self, frame: CapturedFrame, analysed: tuple[Pose, np.ndarray] | None | object = ANALYSE
-    ) -> list[bytes]:
+    def send(self, frame: CapturedFrame) -> list[bytes]:
         """The sender's side of ``frame``: its REM patches, then its frame packet (if any),
-        as bytes. ``analysed``: the encoder's :meth:`~FaceEncoder.analyse` of it, if the
-        caller has it already."""
-        if analysed is ANALYSE:
-            analysed = self.encoder.analyse(frame.image)
-        packet = self.encoder.encode_analysed(frame, analysed)  # type: ignore[arg-type]
+        as bytes."""
+        return self.send_analysed(frame, self.encoder.analyse(frame.image))
+
+    def send_analysed(
+        self, frame: CapturedFrame, analysed: tuple[Pose, np.ndarray] | None
+    ) -> list[bytes]:
+        """:meth:`send` for a frame the caller has analysed (``FaceEncoder.analyse``)."""
+        packet = self.encoder.encode_analysed(frame, analysed)
         sent = [bytes(p) for p in self.encoder.take_patches()]
         return sent if packet is None else [*sent, bytes(packet)]
 
@@ -74,12 +72,10 @@ class Loopback:
             packets.append(packet)
         return packets
 
-    def step(
-        self, frame: CapturedFrame, analysed: tuple[Pose, np.ndarray] | None | object = ANALYSE
-    ) -> list[bytes]:
+    def step(self, frame: CapturedFrame) -> list[bytes]:
         """Both sides of ``frame``; the bytes that went (none: the receiver keeps the last
         picture)."""
-        sent = self.send(frame, analysed)
+        sent = self.send(frame)
         self.receive(sent)
         return sent
 

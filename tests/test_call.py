@@ -73,7 +73,8 @@ def _call(clip: tuple[list, dict], synthesis: bool) -> dict[str, dict[int, np.nd
     try:
         for f in frames:  # track every frame: the tracker follows from frame to frame
             result = encoder.analyse(f.image)
-            if both.step(f, result):  # nothing sent: nothing changed, the receiver keeps it
+            # Nothing sent: nothing changed, the receiver keeps the last frame.
+            if both.receive(both.send_analysed(f, result)):
                 assert both.shown is not None and both.shown.seq == f.index
             shown = both.shown
             if f.index in FRAMES:
