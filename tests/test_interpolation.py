@@ -40,7 +40,9 @@ def frames():
         clip = list(video.frames(limit=BLINK + 1))
     first = clip[0].image
     # The landmarks as tracked: the lids' geometry must close at the blink for the curves to
-    # show (moved by sender/synthesis.py, the eyes are the patches' and close less).
+    # show. Moved by sender/synthesis.py they close less (the flow matches the snapshot's open
+    # eye to a shut one only in part; REM's patch carries the blink): the lids' gap in the
+    # model (cm, summed over the lid pairs) then closes by 0.40, not the 0.5 asked below.
     encoder = FaceEncoder(first.shape[1], first.shape[0], 30.0, synthesis=False)
     both = Loopback(encoder, clip[0], seq=None)
     shown: dict[int, FrameValues | None] = {}
