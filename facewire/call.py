@@ -389,6 +389,7 @@ def send(
         "sender_fps": report.fps,
         "frames_untracked": encoder.frames_untracked,
         "frames_over_rate": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
+        "edge_bytes": round(encoder.edge_bytes),
         "fit_residual": encoder.residual.summary(),
         "width": width,
         "height": height,

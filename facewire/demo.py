@@ -194,6 +194,8 @@ def _call(
         "receiver_fps": report["receiver_fps"],
         "latency_ms": report["latency_ms"],
         "kbps": kbps,
+        # The face's edge corrections ride in the geometry's packets, on a budget of their own.
+        "edge_kbps": encoder.edge_bytes * 8 / duration / 1000,
         "bytes": traffic,
         "messages": messages,
         "encrypted": True,
@@ -262,7 +264,8 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
     # The second path's copies (late frames asked for them) are shown only when there were any.
     spare = f"  second path {k['spare']:.1f}" if k.get("spare") else ""
     print(
-        f"kbit/s: geometry {k['geometry']:.1f}  rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
+        f"kbit/s: geometry {k['geometry']:.1f} (of which the edge {stats['edge_kbps']:.1f})  "
+        f"rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
         f"control {k['control']:.2f}  audio {k['audio']:.1f}{spare}  total {k['total']:.1f}"
     )
     fit = stats.get("fit_residual") or {}

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
+from models.edge import EDGE, EDGE_POINTS, EDGE_SIZE, correct
 from models.face_channels import (
     LIPS,
     POSE_ROTATION,
@@ -33,13 +34,13 @@ from models.person import person_mask
 from models.pose import Pose
 from models.rem import RemLayout
 from models.rig import Rig, load_rig
+from models.surround import SurroundWarp
 from models.wires import WireDeformer
 from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from protocol.images import ImageError, decode_image
 from protocol.packets import DeltaFrame, KeyFrame, PacketError, RemPatch, Snapshot
 from protocol.quant import dequantise
 from receiver.rem import RemMerger
-from receiver.surround import SurroundWarp
 
 logger = logging.getLogger(__name__)
 
@@ -92,6 +93,7 @@ class FaceDecoder:
             WIRE: self.basis.size,
             LIPS: LIPS_SIZE,
             CAMERA: CAMERA_SIZE,
+            EDGE: EDGE_SIZE,
         }
         got = {name: size for name, size, _ in snapshot.channels}
         if got != expected:
@@ -248,32 +250,37 @@ class FaceDecoder:
         pose, params, lips = self.parameters(values)
         return pose.apply(self.model(params, lips))
 
+    def edge(self, values: FrameValues) -> np.ndarray:
+        """(EDGE_POINTS, 2) the face's edge corrections, pixels (models/edge.py)."""
+        spec = next(s for s in self.specs if s.name == EDGE)
+        return dequantise(values.values[EDGE], spec.step).reshape(EDGE_POINTS, 2)
+
     def reconstruct(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR rendering of one frame's values: the face over the snapshot
         frame, whose surroundings of the head are moved along with the face, with the REM
         patches of frames up to this one in its texture."""
         if self.rem is not None and self.rem.due(values.seq):
             self.renderer.set_texture(self.rem.texture)
-        pose, params, lips = self.parameters(values)
-        return self.draw(pose, params, lips, self.camera(values))
+        return self.draw_vertices(
+            self.image_vertices(values), self.camera(values), self.edge(values)
+        )
 
-    def draw(
-        self, pose: Pose, params: np.ndarray, lips: np.ndarray, camera: np.ndarray
+    def draw_vertices(
+        self, vertices: np.ndarray, camera: np.ndarray, edge: np.ndarray | None = None
     ) -> np.ndarray:
-        """:meth:`reconstruct` from parameters rather than a frame's values (the playout
-        draws pictures between two frames this way): ``params`` (P,) wire parameters,
-        ``lips`` the inner lips' opening, ``camera`` the (3, 3) homography of :meth:`camera`."""
-        return self.draw_vertices(pose.apply(self.model(params, lips)), camera)
-
-    def draw_vertices(self, vertices: np.ndarray, camera: np.ndarray) -> np.ndarray:
-        """:meth:`draw` from the face's (n, 3) vertices in image space (pixels)."""
+        """:meth:`reconstruct` from the face's (n, 3) vertices in image space (pixels), the
+        camera's homography of :meth:`camera` and the edge's corrections of :meth:`edge`
+        (the playout draws pictures between two frames this way)."""
         outline = vertices[self._outline, :2]
         background = self.surround.warp(vertices[self._outline], camera)
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))
-        image, _ = self.renderer.render(self._drawn(vertices), background, feather)
-        return image
+        image, face = self.renderer.render(self._drawn(vertices), background, feather)
+        if edge is None:
+            return image
+        # The feathered edge and the surroundings go where the sender saw them.
+        return correct(image, face, outline, edge, feather)
 
     def close(self) -> None:
         self.renderer.close()

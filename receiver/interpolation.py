@@ -1,6 +1,7 @@
 """Pictures between two received frames: the face's parameters blended feature by feature.
 
-A frame's parameters are the head's pose, the rig's wire parameters and the camera's motion.
+A frame's parameters are the head's pose, the rig's wire parameters, the camera's motion and
+the face's edge corrections.
 Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
 
 - the wire parameters blend feature by feature (seed 000, section 5, Fig. 4-6, through
@@ -15,7 +16,8 @@ Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
 - the head turns along the shortest arc between the two rotations (slerp) at an even rate,
   its scale changes geometrically and its position linearly: a rigid head, never a blend of
   matrices (which shears the face in a fast turn);
-- the scene's four corners move linearly (the camera's motion as the protocol carries it).
+- the scene's four corners move linearly (the camera's motion as the protocol carries it),
+  and so do the face's edge corrections (models/edge.py).
 
 :class:`Painter` draws exact frames and blends through one :class:`~receiver.decoder.FaceDecoder`.
 """
@@ -46,12 +48,14 @@ KEPT_FACES = 4
 @dataclass(frozen=True, eq=False)
 class FaceState:
     """What one picture shows: the head's pose, (P,) wire parameters, the inner lips'
-    opening and the camera's (3, 3) homography from the snapshot frame."""
+    opening, the camera's (3, 3) homography from the snapshot frame and the face's edge
+    corrections (models/edge.py)."""
 
     pose: Pose
     wires: np.ndarray
     lips: np.ndarray
     camera: np.ndarray
+    edge: np.ndarray
 
 
 def blend_pose(a: Pose, b: Pose, t: float) -> Pose:
@@ -95,6 +99,7 @@ def blend_state(
         blend(a.wires, b.wires, t, groups),
         blend(a.lips, b.lips, t, {"mouth": np.arange(len(a.lips))}),  # on the mouth's curve
         blend_camera(a.camera, b.camera, t, *size),
+        (1.0 - t) * a.edge + t * b.edge,
     )
 
 
@@ -123,7 +128,7 @@ class Painter:
 
     def state(self, values: FrameValues) -> FaceState:
         pose, params, lips = self.decoder.parameters(values)
-        return FaceState(pose, params, lips, self.decoder.camera(values))
+        return FaceState(pose, params, lips, self.decoder.camera(values), self.decoder.edge(values))
 
     def exact(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR picture of one frame, as :meth:`FaceDecoder.reconstruct`."""
@@ -140,18 +145,18 @@ class Painter:
             return self.exact(a)
         if t == 1.0:
             return self.exact(b)
-        pose, model, camera = self.face_between(a, b, t)
-        return self.decoder.draw_vertices(pose.apply(model), camera)
+        state, model = self.face_between(a, b, t)
+        return self.decoder.draw_vertices(state.pose.apply(model), state.camera, state.edge)
 
     def face_between(
         self, a: FrameValues, b: FrameValues, t: float
-    ) -> tuple[Pose, np.ndarray, np.ndarray]:
-        """The head's pose, the (n, 3) face in model space and the camera's homography a
-        fraction ``t`` of the way from frame a to frame b."""
+    ) -> tuple[FaceState, np.ndarray]:
+        """What the picture a fraction ``t`` of the way from frame a to frame b shows, and
+        its (n, 3) face in model space."""
         s = blend_state(self.state(a), self.state(b), t, self.groups, self.size)
         base = self.decoder.model(s.wires, s.lips)
         model = self.mouth.between(base, self.face(a), self.face(b), t, self._before(a, b))
-        return s.pose, model, s.camera
+        return s, model
 
     def face(self, values: FrameValues) -> np.ndarray:
         """(n, 3) frame ``values``' face in model space (kept for the next few frames)."""

@@ -21,7 +21,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from models.camera import CAMERA, CAMERA_SIZE, camera_step, corners_from_homography
+from models.camera import (
+    CAMERA,
+    CAMERA_SIZE,
+    camera_step,
+    corners_from_homography,
+    homography_from_corners,
+)
+from models.edge import EDGE, EDGE_SIZE, edge_step
 from models.face_channels import (
     DEFAULT_ERROR_PX,
     HYSTERESIS,
@@ -50,10 +57,11 @@ from protocol.quant import dequantise, quantise
 from sender.camera_motion import CameraTracker
 from sender.capture import CapturedFrame
 from sender.channel_filter import ChannelSmoother
+from sender.edge import EdgeMeter
 from sender.fit_residual import FitResidual
 from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from sender.lift import MarkerFaceTracker, MarkerFit
-from sender.rate_cap import GEOMETRY_KBPS, RateCap
+from sender.rate_cap import EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from sender.rem import RemEncoder
 from sender.synthesis import FaceSynthesis
 from sender.texture import UvRasteriser
@@ -130,7 +138,9 @@ class FaceEncoder:
     filtered over time before quantisation (:mod:`sender.channel_filter`): the tracker's
     jitter is most of what would otherwise be sent. With ``synthesis`` (the default) the
     tracked landmarks are moved to where the face the receiver draws matches the frame before
-    they are fitted (:mod:`sender.synthesis`).
+    they are fitted (:mod:`sender.synthesis`). With ``edge`` (the default) each packet
+    carries the corrections that put the face's edge and surroundings where the frame shows
+    them (:mod:`sender.edge`); without, they stay zero.
     """
 
     def __init__(
@@ -147,6 +157,8 @@ class FaceEncoder:
         rem: bool = True,
         geometry_kbps: float | None = GEOMETRY_KBPS,
         synthesis: bool = True,
+        edge: bool = True,
+        edge_kbps: float | None = EDGE_KBPS,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -191,6 +203,14 @@ class FaceEncoder:
         self.use_synthesis = synthesis
         #: The receiver's drawing of the face, to move the tracked landmarks by (None: off).
         self.synthesis: FaceSynthesis | None = None
+        self.use_edge = edge
+        #: The face's edge corrections' measure (None: off, they stay zero).
+        self.edge: EdgeMeter | None = None
+        #: The edge corrections' own rate cap (None: they change whenever they are measured).
+        self.edge_cap = None if edge_kbps is None else RateCap(edge_kbps, fps)
+        self._edge_smoother: ChannelSmoother | None = None
+        #: Bytes of the frame packets that were the edge corrections' share.
+        self.edge_bytes = 0.0
 
     def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
@@ -259,12 +279,14 @@ class FaceEncoder:
         # The background may move twice the face's budget: at 0.5 px its estimate's noise
         # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
         self.steps[CAMERA] = camera_step(2 * self.budget_px)
+        self.steps[EDGE] = edge_step(self.budget_px)
         specs = [
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
         ] + [
             ChannelSpec(WIRE, self.basis.size, self.steps[WIRE]),
             ChannelSpec(LIPS, LIPS_SIZE, self.steps[LIPS]),
             ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
+            ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
         ]
         self.camera = CameraTracker(
             frame.image, points[self.canonical.outline, :2], person_mask(frame.image)
@@ -275,6 +297,16 @@ class FaceEncoder:
             specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
         )
         self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
+        self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
+        if self.use_edge:
+            # The receiver's surroundings, rebuilt from what it decodes.
+            shown = decode_image(background_webp, "snapshot background")
+            at_snapshot = self.rebuilt_vertices(self._last_values)[self.canonical.outline]
+            self.edge = EdgeMeter(
+                shown, at_snapshot, person_mask(shown), float(np.ptp(points[:, 0]))
+            )
+            if self.smoothing:
+                self._edge_smoother = ChannelSmoother({EDGE: self.steps[EDGE]})
         self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None
         self._depth = float(self._last_values[POSE_TRANSLATION][2] * self.steps[POSE_TRANSLATION])
@@ -395,6 +427,7 @@ class FaceEncoder:
         """:meth:`encode` for a frame already analysed (``result`` of :meth:`analyse`)."""
         assert self._channels is not None and self._last_values is not None, "start() first"
         sent = self._last_values
+        vertices = None
         if result is None:
             self.frames_untracked += 1  # repeat the last values
         else:
@@ -408,14 +441,16 @@ class FaceEncoder:
             # jitter would cost bits for nothing, so it keeps the snapshot frame's level.
             floats[POSE_TRANSLATION] = floats[POSE_TRANSLATION].copy()
             floats[POSE_TRANSLATION][2] = self._depth
+            values = self._quantise(floats, self._last_values)
+            vertices = self.rebuilt_vertices(values)
+            floats[EDGE] = self._edge(frame, vertices, values)
+            values[EDGE] = self._quantise_edge(floats[EDGE], sent[EDGE])
             self.intended = floats
-            self._last_values = self._quantise(floats, self._last_values)
+            self._last_values = values
         patches: list[RemPatch] = []
-        vertices = None
-        if result is not None and self.points is not None and self.wires is not None:
-            vertices = self.rebuilt_vertices(self._last_values)
-            if self.rem is not None:
-                patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
+        if vertices is not None and self.rem is not None:
+            assert self.points is not None
+            patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
         may_send = self.rate_cap is None or self.rate_cap.next_frame()
         if not (may_send or patches or self._channels.keyframe_due(frame.index)):
             # Over the rate cap: the receiver keeps what it has (sender/rate_cap.py).
@@ -428,11 +463,12 @@ class FaceEncoder:
             packet = None
         else:
             # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
+            coded = dict(self._channels.coded_bits)
             packet, _ = self._channels.encode(
                 frame.index, frame.capture_us, self._last_values, force=bool(patches)
             )
-            if packet is not None and self.rate_cap is not None:
-                self.rate_cap.spend(len(bytes(packet)))
+            if packet is not None:
+                self._spend(len(bytes(packet)), coded)
         if result is not None and vertices is not None:
             assert self.points is not None and self.wires is not None  # as vertices were made
             pose, params = result
@@ -443,6 +479,45 @@ class FaceEncoder:
             patches = self.rem.keyframe(frame.index, patches) + patches
         self._patches = patches
         return packet
+
+    def _edge(
+        self, frame: CapturedFrame, vertices: np.ndarray, values: dict[str, np.ndarray]
+    ) -> np.ndarray:
+        """(EDGE_SIZE,) the face's edge corrections for ``frame`` (smoothed over time), where
+        the receiver draws the face at ``vertices`` (n, 3) with the camera of channel
+        ``values``; zeros when they are off."""
+        if self.edge is None:
+            return np.zeros(EDGE_SIZE)
+        shift = dequantise(values[CAMERA], self.steps[CAMERA])
+        camera = homography_from_corners(shift, self.width, self.height)
+        edge = self.edge.measure(frame.image, vertices[self.canonical.outline], camera).ravel()
+        if self._edge_smoother is None:
+            return edge
+        return self._edge_smoother({EDGE: edge}, frame.index / self.fps)[EDGE]
+
+    def _quantise_edge(self, floats: np.ndarray, sent: np.ndarray) -> np.ndarray:
+        """The edge corrections' values: ``sent`` kept while their bucket is empty, and a
+        wider hysteresis as it runs low (as the face's under the geometry's cap)."""
+        if self.edge_cap is None:
+            return quantise(floats, self.steps[EDGE], sent, HYSTERESIS)[0]
+        if not self.edge_cap.next_frame():
+            return sent
+        slack = self.edge_cap.slack()
+        return quantise(floats, self.steps[EDGE], sent, HYSTERESIS + slack)[0]
+
+    def _spend(self, nbytes: int, coded_before: dict[str, float]) -> None:
+        """Take a sent frame packet's ``nbytes`` from the rate caps: the edge corrections'
+        share of the bits coded in it (``coded_before``: the channel coder's counts before
+        it) from their bucket, the rest from the geometry's."""
+        coded = self._channels.coded_bits if self._channels is not None else {}
+        added = {k: v - coded_before.get(k, 0.0) for k, v in coded.items()}
+        total = sum(added.values())
+        edge = nbytes * added.get(EDGE, 0.0) / total if total > 0 else 0.0
+        self.edge_bytes += edge
+        if self.edge_cap is not None:
+            self.edge_cap.spend(edge)
+        if self.rate_cap is not None:
+            self.rate_cap.spend(nbytes - edge)
 
     def _quantise(
         self, floats: dict[str, np.ndarray], previous: dict[str, np.ndarray] | None

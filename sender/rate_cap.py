@@ -18,6 +18,9 @@ from __future__ import annotations
 
 #: Payload budget of the frame packets, kbit/s (DESIGN.md: all geometry at most 1.5).
 GEOMETRY_KBPS = 1.5
+#: Budget of the face's edge corrections (sender/edge.py), kbit/s: their share of the frame
+#: packets they ride in is taken from a bucket of their own, so they never hold the face back.
+EDGE_KBPS = 0.75
 #: Most the bucket holds, seconds of budget: a burst of motion this long goes at full rate.
 BUCKET_S = 2.0
 #: What it holds at the start, seconds of budget: the session's first keyframe (about 30-40
@@ -54,6 +57,6 @@ class RateCap:
         self.tokens = min(self.capacity, self.tokens + self.per_frame)
         return self.tokens > 0
 
-    def spend(self, nbytes: int) -> None:
+    def spend(self, nbytes: float) -> None:
         """Take a sent packet's bytes (into debt if need be)."""
         self.tokens -= nbytes

@@ -115,6 +115,8 @@ def test_stats_file_has_the_documented_fields(call: tuple[Path, dict]) -> None:
     # The bundled clip speaks (models/data/PROVENANCE.md): its voice reached the receiver.
     assert kbps["audio"] > 0 and stats["audio"]["played"] > 0
     assert kbps["total"] == pytest.approx(sum(v for k, v in kbps.items() if k != "total"))
+    # The edge's corrections are a part of the geometry's packets.
+    assert 0 <= stats["edge_kbps"] < kbps["geometry"]
     assert stats["malformed"] == 0 and stats["ended_by"] == "bye"
     # The fit residual of every tracked frame: what the rig leaves and what the call sends.
     fit = stats["fit_residual"]

@@ -121,6 +121,21 @@ def test_the_inner_lips_blend_on_the_mouths_curve(frames) -> None:
         assert state.lips == pytest.approx(start.lips + t**3 * (end.lips - start.lips))
 
 
+def test_the_edge_corrections_move_evenly_between_frames(frames) -> None:
+    from dataclasses import replace
+
+    from models.edge import EDGE_POINTS
+
+    decoder, a, b = frames
+    painter = Painter(decoder)
+    rng = np.random.default_rng(0)
+    start = replace(painter.state(a), edge=rng.uniform(-2, 2, (EDGE_POINTS, 2)))
+    end = replace(painter.state(b), edge=rng.uniform(-2, 2, (EDGE_POINTS, 2)))
+    for t in (0.25, 0.5, 0.75):
+        state = blend_state(start, end, t, painter.groups, painter.size)
+        assert state.edge == pytest.approx((1 - t) * start.edge + t * end.edge)
+
+
 def test_the_head_turns_along_the_shortest_arc() -> None:
     turn_a = Rotation.from_euler("y", -30, degrees=True)
     turn_b = Rotation.from_euler("xy", [20, 50], degrees=True)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from receiver.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp
+from models.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp
 
 H, W = 360, 480
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -148,6 +148,21 @@ def test_with_a_person_mask_the_scene_stays_straight_and_no_old_person_shows() -
     left[130:200, 185:200] = True
     red = (layered[..., 2].astype(int) - layered[..., 1]) > 100
     assert red[left].mean() < 0.05
+
+
+def test_a_box_of_the_warp_is_that_part_of_the_whole_warp() -> None:
+    """The sender rebuilds only the receiver's surroundings around the face (sender/edge.py):
+    the same pixels as the whole frame's warp has there."""
+    image, person = person_scene()
+    warp = SurroundWarp(image, outline(), person)
+    now = outline() + [12.0, -5.0]
+    camera = np.array([[1.0, -0.01, 3.0], [0.01, 1.0, -2.0], [0.0, 0.0, 1.0]])
+    whole = warp.warp(now, camera)
+    for x0, y0, x1, y1 in [(0, 0, W, H), (123, 45, 401, 299), (0, 17, 100, H), (400, 300, W, H)]:
+        part = warp.warp(now, camera, (x0, y0, x1, y1))
+        assert part.shape == (y1 - y0, x1 - x0, 3)
+        # Within a level: the maps' interpolation starts from other nodes.
+        assert np.abs(part.astype(int) - whole[y0:y1, x0:x1]).max() <= 1
 
 
 def test_person_mask_finds_a_real_face() -> None:

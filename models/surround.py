@@ -144,7 +144,7 @@ class SurroundWarp:
         self._grid = np.c_[gx.ravel(), gy.ravel()]
         self._grid_sq = (self._grid**2).sum(1)[:, None]
         self._grid_shape = gy.shape
-        self._reach = _reach_weight(self._grid, centre, STILL_REACH * (outline - centre))
+        self._reach = reach_weight(self._grid, centre, STILL_REACH * (outline - centre))
         # Output pixels the head's warp can touch: grid cells next to a node it reaches.
         reached = self._grid[self._reach > 0]
         lo = np.maximum(reached.min(0) - GRID_STEP, 0).astype(int) if len(reached) else (0, 0)
@@ -193,10 +193,13 @@ class SurroundWarp:
         return now, then
 
     def source_map(
-        self, outline: np.ndarray, camera: np.ndarray | None = None
+        self,
+        outline: np.ndarray,
+        camera: np.ndarray | None = None,
+        box: tuple[int, int, int, int] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Full-size float32 maps (x, y) for ``cv2.remap``: the snapshot pixel each output
-        pixel shows.
+        pixel shows; with ``box`` (x0, y0, x1, y1), the maps of that part of the frame.
 
         The displacement is the camera's (exact, everywhere) plus the head's: a thin-plate
         spline through the head's controls, faded to nothing just beyond the still ring, so
@@ -224,14 +227,30 @@ class SurroundWarp:
         # holds the value, which is right for a displacement that is smooth there.
         shift = scene - self._grid + self._reach[:, None] * head
         coarse = shift.reshape(*self._grid_shape, 2).astype(np.float32)
-        size = (coarse.shape[1] * GRID_STEP, coarse.shape[0] * GRID_STEP)
-        full = cv2.resize(coarse, size, interpolation=cv2.INTER_LINEAR)
-        full = full[: self.height, : self.width]
-        return full[..., 0] + self._pixels[0], full[..., 1] + self._pixels[1]
+        x0, y0, x1, y1 = (0, 0, self.width, self.height) if box is None else box
+        # Only the nodes around the box, one more on each side: what lies between them is
+        # the same as in the whole frame's resize.
+        rows, cols = self._grid_shape
+        c0, c1 = max(x0 // GRID_STEP - 1, 0), min(-(-x1 // GRID_STEP) + 1, cols)
+        r0, r1 = max(y0 // GRID_STEP - 1, 0), min(-(-y1 // GRID_STEP) + 1, rows)
+        part = coarse[r0:r1, c0:c1]
+        size = (part.shape[1] * GRID_STEP, part.shape[0] * GRID_STEP)
+        full = cv2.resize(part, size, interpolation=cv2.INTER_LINEAR)
+        ox, oy = c0 * GRID_STEP, r0 * GRID_STEP
+        full = full[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
+        pixels_x, pixels_y = (p[y0:y1, x0:x1] for p in self._pixels)
+        return full[..., 0] + pixels_x, full[..., 1] + pixels_y
 
-    def warp(self, outline: np.ndarray, camera: np.ndarray | None = None) -> np.ndarray:
-        """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along."""
-        map_x, map_y = self.source_map(outline, camera)
+    def warp(
+        self,
+        outline: np.ndarray,
+        camera: np.ndarray | None = None,
+        box: tuple[int, int, int, int] | None = None,
+    ) -> np.ndarray:
+        """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along; with
+        ``box`` (x0, y0, x1, y1) only that part of it (the sender measures around the face)."""
+        map_x, map_y = self.source_map(outline, camera, box)
+        bx0, by0, bx1, by1 = (0, 0, self.width, self.height) if box is None else box
         # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
         # shows as a black band.
         moved4 = cv2.remap(
@@ -243,10 +262,13 @@ class SurroundWarp:
         # Out of the head's reach the person and the scene move alike (with the camera), and
         # there they make up the snapshot frame itself: ``moved`` is already right.
         (x0, x1), (y0, y1) = self._box
-        box = np.s_[y0:y1, x0:x1]
-        alpha = moved4[box][:, :, 3].astype(np.float32) * (1.0 / 255.0)
+        x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
+        if x1 <= x0 or y1 <= y0:
+            return moved
+        box_in = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
+        alpha = moved4[box_in][:, :, 3].astype(np.float32) * (1.0 / 255.0)
         if camera is None or np.array_equal(camera, np.eye(3)):
-            scene = self._scene[box]
+            scene = self._scene[y0:y1, x0:x1]
         else:
             to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera
             size, border = (x1 - x0, y1 - y0), cv2.BORDER_REFLECT_101
@@ -257,7 +279,7 @@ class SurroundWarp:
                 scene = cv2.warpAffine(self._scene, to_box[:2], size, borderMode=border)
             else:
                 scene = cv2.warpPerspective(self._scene, to_box, size, borderMode=border)
-        moved[box] = cv2.blendLinear(moved[box], scene, alpha, 1.0 - alpha)
+        moved[box_in] = cv2.blendLinear(moved[box_in], scene, alpha, 1.0 - alpha)
         return moved
 
 
@@ -294,13 +316,15 @@ def _paint_out(image: np.ndarray, region: np.ndarray) -> np.ndarray:
     return out
 
 
-def _reach_weight(points: np.ndarray, centre: np.ndarray, ring: np.ndarray) -> np.ndarray:
-    """(m,) 1 inside the ring (offsets ``ring`` from ``centre``), easing to 0 at FADE times
-    its radius in each direction."""
+def reach_weight(
+    points: np.ndarray, centre: np.ndarray, ring: np.ndarray, fade: float = FADE
+) -> np.ndarray:
+    """(m,) 1 inside the ring (offsets ``ring`` from ``centre``), easing to 0 at ``fade``
+    times its radius in each direction."""
     angles = np.arctan2(ring[:, 1], ring[:, 0])
     order = np.argsort(angles)
     radii = np.hypot(ring[:, 0], ring[:, 1])[order]
     d = points - centre
     radius = np.interp(np.arctan2(d[:, 1], d[:, 0]), angles[order], radii, period=2 * np.pi)
-    t = np.clip((np.hypot(d[:, 0], d[:, 1]) / radius - 1.0) / (FADE - 1.0), 0.0, 1.0)
+    t = np.clip((np.hypot(d[:, 0], d[:, 1]) / radius - 1.0) / (fade - 1.0), 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
