@@ -89,8 +89,10 @@ def _encode(frames: list, smoothing: bool) -> tuple[int, list[float], list[float
     from sender.encoder import FaceEncoder
 
     h, w = frames[0].image.shape[:2]
-    # No rate cap: it would hold the unsmoothed call's frames back and hide what it costs.
-    encoder = FaceEncoder(w, h, FPS, session_id=1, smoothing=smoothing, geometry_kbps=None)
+    # No rate caps: they would hold the unsmoothed call's values back and hide what it costs.
+    encoder = FaceEncoder(
+        w, h, FPS, session_id=1, smoothing=smoothing, geometry_kbps=None, edge_kbps=None
+    )
     snapshot = encoder.start(frames[0])
     assert snapshot is not None
     table = {name: step for name, _, step in snapshot.channels}
