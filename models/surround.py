@@ -97,6 +97,11 @@ def _in_space(outline: np.ndarray) -> np.ndarray:
     return points if points.shape[1] == 3 else np.c_[points, np.zeros(len(points))]
 
 
+def _is_still(camera: np.ndarray | None) -> bool:
+    """Whether the camera homography moves nothing (None, or the identity to rounding)."""
+    return camera is None or np.allclose(camera, np.eye(3), rtol=0.0, atol=1e-12)
+
+
 def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(3, 3) homography applied to (k, 2) points."""
     h = np.c_[points, np.ones(len(points))] @ matrix.T
@@ -205,6 +210,7 @@ class SurroundWarp:
         spline through the head's controls, faded to nothing just beyond the still ring, so
         the scene further out is untouched by the head.
         """
+        camera = None if _is_still(camera) else camera
         now, then = self.controls(outline, camera)
         back = np.linalg.inv(camera) if camera is not None else None
         scene = self._grid if back is None else _apply(back, self._grid)
@@ -212,7 +218,8 @@ class SurroundWarp:
         residual = then - (now if back is None else _apply(back, now))
         n = len(now)
         system = np.zeros((n + 3, n + 3))
-        d2 = ((now[:, None, :] - now[None, :, :]) ** 2).sum(-1)
+        sq = (now**2).sum(1)
+        d2 = np.maximum(sq[:, None] + sq[None, :] - 2.0 * now @ now.T, 0.0)
         system[:n, :n] = _kernel(d2) + SMOOTHING * np.eye(n)
         system[:n, n] = 1.0
         system[:n, n + 1 :] = now
@@ -221,7 +228,7 @@ class SurroundWarp:
         rhs = np.zeros((n + 3, 2))
         rhs[:n] = residual
         coef = np.linalg.solve(system, rhs)
-        g2 = np.maximum(self._grid_sq + (now**2).sum(1) - 2.0 * self._grid @ now.T, 0.0)
+        g2 = np.maximum(self._grid_sq + sq - 2.0 * self._grid @ now.T, 0.0)
         head = _kernel(g2) @ coef[:n] + coef[n] + self._grid @ coef[n + 1 :]
         # Upsample the displacement, not the position: beyond the outermost nodes resize
         # holds the value, which is right for a displacement that is smooth there.
@@ -267,7 +274,7 @@ class SurroundWarp:
             return moved
         box_in = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         alpha = moved4[box_in][:, :, 3].astype(np.float32) * (1.0 / 255.0)
-        if camera is None or np.array_equal(camera, np.eye(3)):
+        if camera is None or _is_still(camera):
             scene = self._scene[y0:y1, x0:x1]
         else:
             to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera

@@ -26,14 +26,14 @@ WORK_PX = 96
 #: The crop around the face: the outline's box grown by this much of the face's width on each
 #: side (room for the flow's smoothing beyond the outline).
 MARGIN = 0.35
-#: DIS optical flow's preset.
+#: DIS optical flow's preset: the fast one (1.3 ms a frame at 640x480 for the whole measure,
+#: against 2.2 with the medium one; face SSIM within 0.006 either way on four clips).
 FLOW_PRESET = cv2.DISOPTICAL_FLOW_PRESET_FAST
-#: Standard deviation (work pixels) of the Gaussian that smooths the flow: the edge's vectors
-#: describe a smooth field, the flow's own noise is finer.
-FLOW_SIGMA = 3.0
-#: Standard deviation (work pixels) of the Gaussian window about each point in which its
-#: vector must lower the rebuilt picture's difference from the frame to be kept ...
-CHECK_SIGMA = 3.0
+#: Standard deviation (work pixels) of the Gaussian window about each point: the flow's mean
+#: in it is the point's vector (the edge's vectors describe a smooth field, the flow's own
+#: noise is finer), and moving the rebuilt picture by it must lower its difference from the
+#: frame in that window ...
+WINDOW_SIGMA = 3.0
 #: ... to this share of what it was: on a scene the snapshot never saw, the flow still finds
 #: some match, a few per cent better than none.
 KEEP_BELOW = 0.9
@@ -71,19 +71,32 @@ class EdgeMeter:
             person = self._reduced(person.astype(np.float32))
         self.surround = SurroundWarp(background, self._work(outline), person)
         self._flow = cv2.DISOpticalFlow.create(FLOW_PRESET)
-        radius = int(np.ceil(3 * CHECK_SIGMA))
-        window = cv2.getGaussianKernel(2 * radius + 1, CHECK_SIGMA)
-        self._window = (window @ window.T).astype(np.float32)
+        radius = int(np.ceil(3 * WINDOW_SIGMA))
+        window = cv2.getGaussianKernel(2 * radius + 1, WINDOW_SIGMA)
+        self._weights = (window @ window.T).astype(np.float32)
+        self._offsets = np.arange(-radius, radius + 1, dtype=np.float32)
 
-    def _reduced(self, image: np.ndarray, x0: int = 0, y0: int = 0) -> np.ndarray:
-        """Work pixels from (x0, y0) on of ``image``, a frame or a crop of it from the frame's
-        pixel (k x0, k y0): each the mean of k x k pixels."""
+    def _reduced(self, image: np.ndarray) -> np.ndarray:
+        """``image`` (a frame, or a crop of one from a multiple of ``reduce``) in work
+        pixels: each the mean of reduce x reduce of its pixels."""
         k = self.reduce
         if k == 1:
             return image
         h, w = image.shape[:2]
         whole = image[: h - h % k, : w - w % k]
         return cv2.resize(whole, (w // k, h // k), interpolation=cv2.INTER_AREA)
+
+    def _windows(self, image: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """(EDGE_POINTS, n, n[, c]) float32: the window about each of ``centres`` (work
+        pixels, sub-pixel) of ``image``, all in one remap."""
+        n = len(self._offsets)
+        xs = centres[:, 0, None, None] + self._offsets[None, None, :]
+        ys = centres[:, 1, None, None] + self._offsets[None, :, None]
+        shape = (len(centres) * n, n)
+        mx = np.broadcast_to(xs, (len(centres), n, n)).reshape(shape).astype(np.float32)
+        my = np.broadcast_to(ys, (len(centres), n, n)).reshape(shape).astype(np.float32)
+        out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return out.reshape(len(centres), n, n, *out.shape[2:]).astype(np.float32)
 
     def _work(self, points: np.ndarray) -> np.ndarray:
         """(k, 2 or 3) image points (and depths) in work pixels."""
@@ -117,30 +130,16 @@ class EdgeMeter:
         seen = cv2.cvtColor(self._reduced(crop), cv2.COLOR_BGR2GRAY)
         shown = cv2.cvtColor(self.surround.warp(poly, camera, (x0, y0, x1, y1)), cv2.COLOR_BGR2GRAY)
         flow = self._flow.calc(seen, shown, np.zeros((*seen.shape, 2), np.float32))
-        flow = cv2.GaussianBlur(flow, (0, 0), FLOW_SIGMA)
         at = (edge_points(poly) - (x0, y0)).astype(np.float32)
-        found = cv2.remap(flow, at[None, :, 0], at[None, :, 1], cv2.INTER_LINEAR)[0]
-        for i in range(EDGE_POINTS):
-            if self._keep(seen, shown, at[i], found[i], width):
-                vectors[i] = found[i]
+        inside = (at >= 0).all(1) & (at[:, 0] <= x1 - x0 - 1) & (at[:, 1] <= y1 - y0 - 1)
+        weights = self._weights[None]
+        found = (weights[..., None] * self._windows(flow, at)).sum((1, 2))
+        # Kept where moving the rebuilt picture by it brings the window closer to the frame.
+        frame = self._windows(seen, at)
+        before = (weights * np.abs(frame - self._windows(shown, at))).sum((1, 2))
+        after = (weights * np.abs(frame - self._windows(shown, at + found))).sum((1, 2))
+        keep = inside & (after < KEEP_BELOW * before)
+        # A long vector is the flow's mismatch, not the edge's error.
+        keep &= np.hypot(found[:, 0], found[:, 1]) <= MAX_SHIFT * width
+        vectors[keep] = found[keep]
         return vectors * k
-
-    def _keep(
-        self, seen: np.ndarray, shown: np.ndarray, at: np.ndarray, vector: np.ndarray, width: float
-    ) -> bool:
-        """Whether ``vector`` at ``at`` (work pixels of the crops) brings the rebuilt picture
-        ``shown`` closer to the frame's ``seen`` in a window about the point."""
-        h, w = seen.shape
-        if not (0 <= at[0] <= w - 1 and 0 <= at[1] <= h - 1):
-            return False
-        if np.hypot(*vector) > MAX_SHIFT * width or not vector.any():
-            return False
-        size = self._window.shape[::-1]
-        frame = cv2.getRectSubPix(seen, size, (float(at[0]), float(at[1])), patchType=cv2.CV_32F)
-        there = cv2.getRectSubPix(shown, size, (float(at[0]), float(at[1])), patchType=cv2.CV_32F)
-        moved = cv2.getRectSubPix(
-            shown, size, (float(at[0] + vector[0]), float(at[1] + vector[1])), patchType=cv2.CV_32F
-        )
-        before = float((self._window * np.abs(frame - there)).sum())
-        after = float((self._window * np.abs(frame - moved)).sum())
-        return after < KEEP_BELOW * before
