@@ -93,6 +93,7 @@ def summary(report: QualityReport, stats: dict[str, Any] | None) -> dict[str, An
     out: dict[str, Any] = report.as_dict()
     if stats is not None:
         out["geometry_kbps"] = stats["kbps"]["geometry"]
+        out["edge_kbps"] = stats.get("edge_kbps", 0.0)  # a part of the geometry's packets
         out["call"] = {k: stats.get(k) for k in ("frames_in", "frames_out", "frames_held")}
     return out
 
@@ -108,7 +109,8 @@ def print_table(result: dict[str, Any]) -> None:
     if "geometry_kbps" in result:
         call = result["call"]
         print(
-            f"geometry {result['geometry_kbps']:.2f} kbit/s; call: {call['frames_in']} frames in, "
+            f"geometry {result['geometry_kbps']:.2f} kbit/s (of which the edge "
+            f"{result.get('edge_kbps', 0.0):.2f}); call: {call['frames_in']} frames in, "
             f"{call['frames_out']} out, {call['frames_held']} held by the receiver"
         )
 
