@@ -47,6 +47,9 @@ SMOOTHING = 1.0
 #: spacing, a third of the face's width.
 GRID_ACROSS = 16
 MIN_GRID_STEP, MAX_GRID_STEP = 4, 16
+#: The most one correction moves the picture, a share of the face's width: the sender sends
+#: at most 6%, so a longer one is a broken or hostile value, and must not tear the picture.
+MAX_CORRECTION = 0.1
 #: The corrections' quantisation step, in units of the face's error budget: the surroundings
 #: get twice the face's, as the camera's motion does (0.5 px on a small face).
 STEP_PER_BUDGET = 2.0
@@ -160,6 +163,9 @@ def correct(
         return image
     h, w = image.shape[:2]
     poly = np.asarray(outline, dtype=np.float64)[:, :2]
+    limit = MAX_CORRECTION * float(np.ptp(poly[:, 0]))
+    length = np.hypot(vectors[:, 0], vectors[:, 1])[:, None]
+    vectors = vectors * np.minimum(1.0, limit / np.maximum(length, 1e-9))
     centre = poly.mean(0)
     reach = centre + FADE_REACH * (poly - centre)
     x0, y0 = np.maximum(np.floor(reach.min(0)).astype(int), 0)
