@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from models.surround import reach_weight
+from models.thin_plate import ThinPlate
 
 #: The channel of the edge's corrections: (x, y) per point, pixels of the call's frame.
 EDGE = "edge"
@@ -39,9 +40,9 @@ OUTER_REACH = 2.2
 #: ... and it fades to nothing between that ring and this one: the spline is small beyond its
 #: outer zeros but not nothing, and the picture must not tear where the field ends.
 FADE_REACH = 2.6
-#: The spline's regulariser, pixels^2: the vectors are the flow's, a few tenths of a pixel
-#: uncertain, so the field need not pass through them exactly.
-SMOOTHING = 1.0
+#: The spline's regulariser (models/thin_plate.py), pixels^2: the vectors are the flow's, a
+#: few tenths of a pixel uncertain, so the field need not pass through them exactly.
+SMOOTHING = 2.0
 #: The field is evaluated on a grid of this many nodes across the face's width (within
 #: MIN/MAX_GRID_STEP pixels apart) and interpolated in between: it changes over the rings'
 #: spacing, a third of the face's width.
@@ -78,14 +79,6 @@ def edge_points(outline: np.ndarray) -> np.ndarray:
     return outline_ring(outline, EDGE_POINTS)
 
 
-def _tps(r2: np.ndarray) -> np.ndarray:
-    """Thin-plate radial basis r^2 log r from squared distances (0 at r = 0)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = 0.5 * r2 * np.log(r2)
-    out[r2 == 0] = 0.0
-    return out
-
-
 def edge_field(
     outline: np.ndarray, vectors: np.ndarray, box: tuple[int, int, int, int]
 ) -> np.ndarray:
@@ -106,18 +99,7 @@ def edge_field(
     centre = poly.mean(0)
     points = edge_points(poly) - centre
     controls = centre + np.vstack([points, INNER_REACH * points, OUTER_REACH * points])
-    values = np.vstack([vectors, zero, zero])
-    n = len(controls)
-    system = np.zeros((n + 3, n + 3))
-    d2 = ((controls[:, None, :] - controls[None, :, :]) ** 2).sum(-1)
-    system[:n, :n] = _tps(d2) + SMOOTHING * np.eye(n)
-    system[:n, n] = 1.0
-    system[:n, n + 1 :] = controls
-    system[n, :n] = 1.0
-    system[n + 1 :, :n] = controls.T
-    rhs = np.zeros((n + 3, 2))
-    rhs[:n] = values
-    coef = np.linalg.solve(system, rhs)
+    spline = ThinPlate(controls, np.vstack([vectors, zero, zero]), SMOOTHING)
     # Grid nodes where cv2.resize samples them.
     step = int(np.clip(round(np.ptp(poly[:, 0]) / GRID_ACROSS), MIN_GRID_STEP, MAX_GRID_STEP))
     nx, ny = -(-cols // step), -(-rows // step)
@@ -126,9 +108,7 @@ def edge_field(
         y0 + (np.arange(ny) + 0.5) * step - 0.5,
     )
     grid = np.c_[gx.ravel(), gy.ravel()]
-    g2 = (grid**2).sum(1)[:, None] + (controls**2).sum(1) - 2.0 * grid @ controls.T
-    g2 = np.maximum(g2, 0.0)
-    field = _tps(g2) @ coef[:n] + coef[n] + grid @ coef[n + 1 :]
+    field = spline(grid)
     fade = reach_weight(grid, centre, OUTER_REACH * (poly - centre), FADE_REACH / OUTER_REACH)
     field *= fade[:, None]
     coarse = field.reshape(ny, nx, 2).astype(np.float32)

@@ -37,6 +37,8 @@ import logging
 import cv2
 import numpy as np
 
+from models.thin_plate import ThinPlate
+
 logger = logging.getLogger(__name__)
 
 #: Head ring = face outline scaled about its centre by this much (takes in hair and ears).
@@ -62,14 +64,6 @@ PERSON_THRESHOLD = 0.2
 PERSON_MARGIN = 0.01
 #: The scene behind the person is painted in at most this many pixels wide, then scaled up.
 INPAINT_WIDTH = 160
-
-
-def _kernel(r2: np.ndarray) -> np.ndarray:
-    """Thin-plate radial basis U(r) = r^2 log r^2 (U(0) = 0), from squared distances."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = r2 * np.log(r2)
-    out[r2 == 0] = 0.0
-    return out
 
 
 def similarity_3d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -216,20 +210,7 @@ class SurroundWarp:
         scene = self._grid if back is None else _apply(back, self._grid)
         # What the head adds to the camera's motion, at each control point.
         residual = then - (now if back is None else _apply(back, now))
-        n = len(now)
-        system = np.zeros((n + 3, n + 3))
-        sq = (now**2).sum(1)
-        d2 = np.maximum(sq[:, None] + sq[None, :] - 2.0 * now @ now.T, 0.0)
-        system[:n, :n] = _kernel(d2) + SMOOTHING * np.eye(n)
-        system[:n, n] = 1.0
-        system[:n, n + 1 :] = now
-        system[n, :n] = 1.0
-        system[n + 1 :, :n] = now.T
-        rhs = np.zeros((n + 3, 2))
-        rhs[:n] = residual
-        coef = np.linalg.solve(system, rhs)
-        g2 = np.maximum(self._grid_sq + sq - 2.0 * self._grid @ now.T, 0.0)
-        head = _kernel(g2) @ coef[:n] + coef[n] + self._grid @ coef[n + 1 :]
+        head = ThinPlate(now, residual, SMOOTHING)(self._grid, self._grid_sq)
         # Upsample the displacement, not the position: beyond the outermost nodes resize
         # holds the value, which is right for a displacement that is smooth there.
         shift = scene - self._grid + self._reach[:, None] * head

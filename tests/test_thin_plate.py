@@ -1,0 +1,26 @@
+"""Thin-plate splines: through their controls, and exact for an affine map."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.thin_plate import ThinPlate
+
+
+def test_the_spline_passes_through_its_controls() -> None:
+    rng = np.random.default_rng(0)
+    controls = rng.uniform(0, 100, (20, 2))
+    values = rng.normal(0, 3, (20, 2))
+    assert np.allclose(ThinPlate(controls, values, 0.0)(controls), values, atol=1e-6)
+    # Smoothing lets it pass near them instead, and only near.
+    smooth = ThinPlate(controls, values, 50.0)(controls)
+    assert 0.0 < np.abs(smooth - values).max() < np.abs(values).max()
+
+
+def test_an_affine_map_is_reproduced_everywhere() -> None:
+    rng = np.random.default_rng(1)
+    controls = rng.uniform(0, 100, (12, 2))
+    matrix, shift = np.array([[1.1, -0.2], [0.3, 0.9]]), np.array([4.0, -7.0])
+    spline = ThinPlate(controls, controls @ matrix.T + shift, 1.0)
+    points = rng.uniform(-50, 150, (200, 2))
+    assert np.allclose(spline(points), points @ matrix.T + shift, atol=1e-6)
