@@ -11,8 +11,10 @@ as each step leaves it:
 2. wires: the least-squares fit of all wire parameters (seed 000), unquantised;
 3. wire basis: that fit projected on the rig's 16-coefficient wire basis;
 4. smoothed: the channels after the sender's One Euro filter, before quantisation;
-5. the call: quantised, through packets and the receiver's decoder (REM off);
-6. + REM: the same with the live eye and mouth patches.
+5. the call: quantised, through packets and the receiver's decoder (REM off), drawn without
+   the face's edge corrections (models/edge.py);
+6. + the face's edge: the same packets drawn with them, as the receiver does;
+7. + REM: the same with the live eye and mouth patches.
 
 Per row: SSIM / PSNR over the face, eyes, mouth and mouth-open regions (masks from the
 input's own landmarks, benchmarks/bench_rem.py), and the bit rate where packets are sent.
@@ -36,13 +38,15 @@ from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E
 from sender.encoder import FaceEncoder  # noqa: E402
 from sender.landmarks import LandmarkTracker  # noqa: E402
 
-STEPS = ("landmarks", "wires", "wire basis", "smoothed", "the call")
+EDGE = "+ the face's edge"
+STEPS = ("landmarks", "wires", "wire basis", "smoothed", "the call", EDGE)
 
 
 def geometry_steps(
     frames: list[CapturedFrame], size: tuple[int, int], fps: float
-) -> tuple[dict[str, list[np.ndarray]], int]:
-    """Every frame drawn from each geometry step (REM off); the packets' bytes."""
+) -> tuple[dict[str, list[np.ndarray]], int, float]:
+    """Every frame drawn from each geometry step (REM off); the packets' bytes, and the edge
+    corrections' share of them."""
     encoder = FaceEncoder(size[0], size[1], fps, rem=False)
     outputs: dict[str, list[np.ndarray]] = {step: [] for step in STEPS}
     sent = 0
@@ -77,10 +81,11 @@ def geometry_steps(
                 }
                 for step, vertices in drawn.items():
                     last[step] = decoder.draw_vertices(vertices, camera)
-            last["the call"] = decoder.reconstruct(values)
+            last[EDGE] = decoder.reconstruct(values)
+            last["the call"] = decoder.draw_vertices(decoder.image_vertices(values), camera)
             for step in STEPS:
                 outputs[step].append(last.get(step, last["the call"]))
-    return outputs, sent
+    return outputs, sent, encoder.edge_bytes
 
 
 def bench_clip(path: Path, frames_limit: int | None) -> None:
@@ -93,7 +98,7 @@ def bench_clip(path: Path, frames_limit: int | None) -> None:
     inputs = [f.image for f in frames]
     tracker = LandmarkTracker()
     points = [None if (t := tracker.track(img)) is None else t.points for img in inputs]
-    outputs, sent = geometry_steps(frames, size, fps)
+    outputs, sent, edge_bytes = geometry_steps(frames, size, fps)
     rem = call(frames, size, fps, rem=True)
     outputs["+ REM"] = rem.outputs
     duration = len(frames) / fps
@@ -105,7 +110,9 @@ def bench_clip(path: Path, frames_limit: int | None) -> None:
         cells = " | ".join(f"{s[r][0]:.4f} / {s[r][1]:.2f} dB" for r in REGIONS)
         rate = ""
         if step == "the call":
-            rate = f"{sent * 8 / duration / 1000:.2f} kbit/s"
+            rate = f"{(sent - edge_bytes) * 8 / duration / 1000:.2f} kbit/s"
+        elif step == EDGE:
+            rate = f"+ edge {edge_bytes * 8 / duration / 1000:.2f} kbit/s"
         elif step == "+ REM":
             rate = f"+ REM {rem.rem_bytes * 8 / duration / 1000:.2f} kbit/s"
         print(f"| {step} | {cells} | {rate} |")
