@@ -26,8 +26,8 @@ WORK_PX = 96
 #: The crop around the face: the outline's box grown by this much of the face's width on each
 #: side (room for the flow's smoothing beyond the outline).
 MARGIN = 0.35
-#: DIS optical flow's preset: the fast one (1.3 ms a frame at 640x480 for the whole measure,
-#: against 2.2 with the medium one; face SSIM within 0.006 either way on four clips).
+#: DIS optical flow's preset: the fast one (1.2 ms a frame at 640x480 for the whole measure,
+#: against 1.8 with the medium one; face SSIM within 0.006 either way on four clips).
 FLOW_PRESET = cv2.DISOPTICAL_FLOW_PRESET_FAST
 #: Standard deviation (work pixels) of the Gaussian window about each point: the flow's mean
 #: in it is the point's vector (the edge's vectors describe a smooth field, the flow's own
