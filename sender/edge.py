@@ -64,6 +64,10 @@ class EdgeMeter:
         face_px: float,
     ) -> None:
         self.reduce = k = max(1, int(np.ceil(float(face_px) / WORK_PX)))
+        # Frame pixels to work pixels (centres kept: x -> (x + 1/2) / k - 1/2), and back.
+        shift = 0.5 / k - 0.5
+        self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])
+        self._from_work = np.linalg.inv(self._to_work)
         h, w = background.shape[:2]
         self.size = (max(1, w // k), max(1, h // k))
         background = self._reduced(background)
@@ -100,11 +104,10 @@ class EdgeMeter:
 
     def _work(self, points: np.ndarray) -> np.ndarray:
         """(k, 2 or 3) image points (and depths) in work pixels."""
-        k = self.reduce
         out = np.array(points, dtype=np.float64)
-        out[:, :2] = (out[:, :2] + 0.5) / k - 0.5
+        out[:, :2] = out[:, :2] @ self._to_work[:2, :2].T + self._to_work[:2, 2]
         if out.shape[1] > 2:
-            out[:, 2] /= k
+            out[:, 2] /= self.reduce
         return out
 
     def measure(
@@ -116,8 +119,7 @@ class EdgeMeter:
         k = self.reduce
         poly = self._work(outline)
         if camera is not None and k > 1:
-            to_work = np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1]])
-            camera = to_work @ camera @ np.linalg.inv(to_work)
+            camera = self._to_work @ camera @ self._from_work
         vectors = np.zeros((EDGE_POINTS, 2))
         width = float(np.ptp(poly[:, 0]))
         lo = np.floor(poly[:, :2].min(0) - MARGIN * width).astype(int)
