@@ -509,8 +509,8 @@ class FaceEncoder:
         """Take a sent frame packet's ``nbytes`` from the rate caps: the edge corrections'
         share of the bits coded in it (``coded_before``: the channel coder's counts before
         it) from their bucket, the rest from the geometry's."""
-        coded = self._channels.coded_bits if self._channels is not None else {}
-        added = {k: v - coded_before.get(k, 0.0) for k, v in coded.items()}
+        assert self._channels is not None  # a packet was coded
+        added = {k: v - coded_before.get(k, 0.0) for k, v in self._channels.coded_bits.items()}
         total = sum(added.values())
         edge = nbytes * added.get(EDGE, 0.0) / total if total > 0 else 0.0
         self.edge_bytes += edge
