@@ -145,6 +145,17 @@ def test_a_large_face_is_measured_on_the_frame_scaled_down() -> None:
     assert np.abs(vectors - [2.0, 1.0]).max() < 0.5, vectors
 
 
+def test_a_large_face_is_measured_with_the_camera_moved_as_the_receiver_moves_it() -> None:
+    """The camera's homography is in the frame's pixels; the reduced frame's rebuild must
+    move the scene by the same amount on screen."""
+    surround, edge = meter(face_px=240.0)
+    now = ellipse(centre=(166.0, 117.0))
+    camera = np.array([[1.0, 0.0, 9.0], [0.0, 1.0, -6.0], [0.0, 0.0, 1.0]])  # a pan
+    frame = shifted(surround.warp(now, camera), (2.0, 1.0))
+    vectors = edge.measure(frame, now, camera)  # type: ignore[attr-defined]
+    assert np.abs(vectors - [2.0, 1.0]).max() < 0.5, vectors
+
+
 def test_a_correction_that_would_not_bring_the_picture_closer_is_not_sent() -> None:
     surround, edge = meter()
     now = ellipse()
