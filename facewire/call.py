@@ -191,6 +191,34 @@ def add_geometry_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _max_kbps(text: str) -> float:
+    from protocol.congestion import MIN_RATE_BPS
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not MIN_RATE_BPS / 1000 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(
+            f"expected at least {MIN_RATE_BPS / 1000:g} kbit/s (the face alone needs that), "
+            f"got {text!r}"
+        )
+    return value
+
+
+def add_budget_argument(p: argparse.ArgumentParser) -> None:
+    """The sending end's budget on the wire (protocol/media_path.py)."""
+    from protocol.media_path import DEFAULT_BUDGET_BPS
+
+    p.add_argument(
+        "--max-kbps",
+        type=_max_kbps,
+        metavar="N",
+        help="the most this end sends, kbit/s on the wire with every header counted; less when "
+        f"the receiver's reports say the link carries less (default {DEFAULT_BUDGET_BPS / 1000:g})",
+    )
+
+
 def add_sound_arguments(p: argparse.ArgumentParser) -> None:
     """The sending end's sound: the file's audio track, or the microphone with a camera."""
     sound = p.add_mutually_exclusive_group()
@@ -337,7 +365,12 @@ def send(
         snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.name)
         width, height = source.size
         endpoint = SenderEndpoint(
-            address.host, *address.ports(offset), connect=not address.bind, **keys
+            address.host,
+            *address.ports(offset),
+            connect=not address.bind,
+            max_bps=None if args.max_kbps is None else args.max_kbps * 1000,
+            fps=source.video.fps,
+            **keys,
         )
         try:
             endpoint.set_snapshot(snapshot)
@@ -640,6 +673,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     add_address_arguments(p)
     _add_source_arguments(p)
     add_geometry_arguments(p)
+    add_budget_argument(p)
     add_sound_arguments(p)
     add_key_arguments(p, "a receiver's public key file, or a folder of them (repeatable)")
     _add_common(p)
@@ -669,6 +703,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     add_address_arguments(p)
     _add_source_arguments(p)
     add_geometry_arguments(p)
+    add_budget_argument(p)
     add_sound_arguments(p)
     p.add_argument("--record", metavar="FILE.mp4", help="record the other end")
     add_watch_arguments(p)

@@ -132,7 +132,11 @@ def _call(
     receiver_public, receiver_secret = write_keypair(tmp, "receiver")
     receiver_keys = {"secret_key_file": str(receiver_secret), "server_key_file": str(sender_public)}
     with SenderEndpoint(
-        HOST, secret_key_file=sender_secret, allowed_keys=[receiver_public]
+        HOST,
+        secret_key_file=sender_secret,
+        allowed_keys=[receiver_public],
+        max_bps=None if args.max_kbps is None else args.max_kbps * 1000,
+        fps=video.fps,
     ) as endpoint:
         endpoint.set_snapshot(snapshot)
         proc = ctx.Process(

@@ -30,6 +30,7 @@ class Kind(IntEnum):
     SNAPSHOT_REQUEST = 8
     DELTA_FRAME = 9
     AUDIO_FRAME = 10
+    MEDIA_KEY = 11
 
 
 # --- limits (decoding rejects anything beyond them) -----------------------------------------

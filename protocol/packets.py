@@ -660,6 +660,31 @@ class SnapshotRequest(_Packet):
     N_FIELDS: ClassVar[int] = 0
 
 
+@dataclass(frozen=True, eq=False)
+class MediaKey(_Packet):
+    """Sender -> receiver, just before the Snapshot: the secret of the media datagrams.
+
+    key_id : 0-255, byte 1 of every datagram sealed with it (protocol/datagram.py)
+    secret : 32 bytes; HKDF makes each direction's key and salt from it
+    udp : 1 if the sender takes datagrams (it may send the media as datagrams), 0 if not
+    """
+
+    KIND: ClassVar[Kind] = Kind.MEDIA_KEY
+    N_FIELDS: ClassVar[int] = 3
+
+    key_id: int
+    secret: bytes
+    udp: int
+
+    def __post_init__(self) -> None:
+        _set(self, "key_id", _int("MediaKey.key_id", self.key_id, 0, 255))
+        secret = _bytes("MediaKey.secret", self.secret)
+        if len(secret) != 32:
+            raise PacketError(f"MediaKey.secret: expected 32 bytes, got {len(secret)}")
+        _set(self, "secret", secret)
+        _set(self, "udp", _int("MediaKey.udp", self.udp, 0, 1))
+
+
 Packet: TypeAlias = (
     Snapshot
     | KeyFrame
@@ -671,6 +696,7 @@ Packet: TypeAlias = (
     | Bye
     | SnapshotRequest
     | AudioFrame
+    | MediaKey
 )
 
 _BY_KIND: dict[int, type[_Packet]] = {
@@ -686,6 +712,7 @@ _BY_KIND: dict[int, type[_Packet]] = {
         Bye,
         SnapshotRequest,
         AudioFrame,
+        MediaKey,
     )
 }
 

@@ -54,7 +54,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import Self, TypeVar
 
 import zmq
 from zmq.utils.monitor import recv_monitor_message
@@ -84,6 +84,15 @@ from protocol.constants import (
     ZAP_DOMAIN,
 )
 from protocol.keys import KeyPair, load_keypair, load_public_key, load_public_keys
+from protocol.media_path import (
+    DATAGRAM_COST,
+    DEFAULT_BUDGET_BPS,
+    REPORT_INTERVAL_S,
+    Bundler,
+    ReceiverMediaPath,
+    SenderMediaPath,
+    WireCounts,
+)
 from protocol.packets import (
     AudioFrame,
     Bye,
@@ -91,6 +100,7 @@ from protocol.packets import (
     Heartbeat,
     KeyFrame,
     KeyframeRequest,
+    MediaKey,
     Packet,
     PacketError,
     ReceiverStats,
@@ -111,6 +121,12 @@ SEQ_KINDS = (KeyFrame, RemPatch)
 UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot, AudioFrame)
 #: Packets that may also come over the second path (ROUTER to DEALER).
 FRAME_KINDS = (KeyFrame, DeltaFrame)
+#: Updates that travel as datagrams while a receiver's media path is live (a Snapshot never does).
+MEDIA_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, AudioFrame)
+#: A REM patch at least this long waits for what the budget leaves (else it rides with its frame).
+_PACED_PATCH_BYTES = 64
+#: Updates remembered to drop the second of two copies that came by both paths.
+_RECENT_UPDATES = 512
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
 _MAX_DRAIN = 1000
 _HANDSHAKE_FAILED = (
@@ -119,6 +135,7 @@ _HANDSHAKE_FAILED = (
     | zmq.EVENT_HANDSHAKE_FAILED_AUTH
 )
 _zap_suffix = itertools.count(1)
+_M = TypeVar("_M", SenderMediaPath, ReceiverMediaPath)
 
 
 class TransportError(RuntimeError):
@@ -143,6 +160,8 @@ class TransportStats:
     copies: int = 0
     late_copies: int = 0
     saved: int = 0
+    # The media path: updates that came both as datagrams and on SUB, the second dropped.
+    duplicates: int = 0
 
 
 def _socket(
@@ -188,6 +207,18 @@ def _attach(
         except zmq.ZMQError as exc:
             raise TransportError(f"{side}: cannot connect to {host}:{port}: {exc}") from exc
     return ports
+
+
+def _open_media(kind: type[_M], host: str, port: int, bind: bool, wanted: bool) -> _M | None:
+    """The UDP media path on ``host:port``, or None (not wanted, or no UDP socket there: the
+    media then go by ZeroMQ, which the log says)."""
+    if not wanted:
+        return None
+    try:
+        return kind(host, port, bind)
+    except OSError as exc:
+        logger.warning("media: no UDP socket on %s:%d (%s): media over ZeroMQ/TCP", host, port, exc)
+        return None
 
 
 def _ms(seconds: float) -> int:
@@ -285,6 +316,17 @@ class _Endpoint:
         if self._closed:
             raise TransportError(f"{type(self).__name__} is closed")
 
+    def _accept(self, packet: Packet, data: bytes) -> None:
+        """Count a well-formed packet received."""
+        self.stats.received += 1
+        self.bytes_received[packet.CHANNEL] += len(data)
+        self.sizes_received[packet.CHANNEL][len(data)] += 1
+
+    def _accept_sent(self, packet: Packet, data: bytes) -> None:
+        """Count a packet sent (its payload bytes, whichever path it takes)."""
+        self.bytes_sent[packet.CHANNEL] += len(data)
+        self.sizes_sent[packet.CHANNEL][len(data)] += 1
+
     def _drop(self, data: bytes, reason: str) -> None:
         self.stats.malformed += 1
         logger.debug("dropped %d-byte message: %s", len(data), reason)
@@ -350,6 +392,9 @@ class SenderEndpoint(_Endpoint):
         allowed_keys: KeyFile | Iterable[KeyFile] | None = None,
         plain: bool = False,
         connect: bool = False,
+        udp: bool = True,
+        max_bps: float | None = None,
+        fps: float = 30.0,
     ) -> None:
         has_keys = secret_key_file is not None or allowed_keys is not None
         _check_mode(plain, has_keys, "sender", "secret_key_file, allowed_keys")
@@ -367,6 +412,7 @@ class SenderEndpoint(_Endpoint):
         # Unread replies raise Again (counted and dropped) instead of vanishing silently.
         self._router.setsockopt(zmq.ROUTER_MANDATORY, 1)
         self._sockets = [self._pub, self._router]
+        self._media: SenderMediaPath | None = None
         try:
             if keys is not None:
                 self._zap_domain = f"{ZAP_DOMAIN}.{os.getpid()}.{next(_zap_suffix)}"
@@ -383,9 +429,14 @@ class SenderEndpoint(_Endpoint):
                 bind=not connect,
                 side="sender",
             )
+            self._media = _open_media(SenderMediaPath, bind_host, self._ports[0], not connect, udp)
         except BaseException:
             self.close()
             raise
+        self._bundler = Bundler(fps)
+        self._paced = False
+        #: The on-the-wire budget of this direction, bits per second (headers counted).
+        self.max_bps = DEFAULT_BUDGET_BPS if max_bps is None else max_bps
         self._snapshot: Snapshot | None = None
         self._snapshot_bytes = b""
         self._waiting: dict[bytes, None] = {}  # identities that asked before a snapshot was set
@@ -417,6 +468,48 @@ class SenderEndpoint(_Endpoint):
     def _release(self) -> None:
         if self._zap_domain:
             _Zap.unregister(self._context, self._zap_domain)
+        if self._media is not None:
+            self._media.close()
+
+    @property
+    def wire(self) -> WireCounts | None:
+        """The media path's datagrams and their bytes on the wire (None without one)."""
+        return None if self._media is None else self._media.counts
+
+    def budget_bps(self) -> float:
+        """This direction's budget: ``max_bps``, or what a receiver's link carries if less."""
+        if self._media is None:
+            return self.max_bps
+        return self._media.budget_bps(self._clock(), self.max_bps)
+
+    def patch_budget_bps(self) -> float:
+        """What the budget leaves for REM patches, bits per second (payload)."""
+        budget = self.budget_bps()
+        headers = DATAGRAM_COST * 8 * self._bundler.fps / self._bundler.k
+        return max(0.0, budget - headers - self._bundler.due_bps)
+
+    @property
+    def frames_per_datagram(self) -> int:
+        return self._bundler.k
+
+    def _on_udp(self, now: float) -> bool:
+        return self._media is not None and bool(self._media.live(now))
+
+    def end_frame(self) -> None:
+        """A frame's updates are all published: send the datagram if one is due.
+
+        A caller that marks its frames' ends this way has its updates bundled, one datagram for
+        every ``frames_per_datagram`` frames; until the first call each update leaves alone.
+        """
+        self._check_open()
+        self._paced = True
+        if self._media is None:
+            return
+        now = self._clock()
+        self._media.read(now)
+        self._media.service(now)
+        for bundle in self._bundler.end_frame(now, self.budget_bps()):
+            self._media.send(bundle, now)
 
     def set_snapshot(self, snapshot: Snapshot) -> None:
         """Make ``snapshot`` the one served to (re)joining receivers; answers waiting requests."""
@@ -445,20 +538,42 @@ class SenderEndpoint(_Endpoint):
         if seq is not None and not 0 <= seq <= UINT32_MAX:
             raise ValueError(f"frame number {seq} outside [0, {UINT32_MAX}]")
         data = bytes(packet)
+        now = self._clock()
+        self._accept_sent(packet, data)
+        self._last_publish = now
+        on_udp = self._on_udp(now) and isinstance(packet, MEDIA_KINDS)
+        if on_udp:
+            self._bundle(packet, data, now)
+        if not on_udp or isinstance(packet, Bye) or self._media_fallback(now):
+            self._pub_send(data)
+            if isinstance(packet, FRAME_KINDS) and self._spare_until:
+                self._send_spare(data)
+        if isinstance(packet, KeyFrame):
+            self._last_seq = packet.seq
+        elif isinstance(packet, DeltaFrame) and seq is not None:
+            self._last_seq = seq
+
+    def _pub_send(self, data: bytes) -> None:
         # Reading EVENTS makes libzmq take in its pending commands now (a plain send only does
         # so about once a millisecond): it learns how far its queues were read, and does not
         # drop a burst that the small UPDATE_HWM can hold.
         self._pub.getsockopt(zmq.EVENTS)
         self._pub.send(data)
-        self.bytes_sent[packet.CHANNEL] += len(data)
-        self.sizes_sent[packet.CHANNEL][len(data)] += 1
-        self._last_publish = self._clock()
-        if isinstance(packet, FRAME_KINDS) and self._spare_until:
-            self._send_spare(data)
-        if isinstance(packet, KeyFrame):
-            self._last_seq = packet.seq
-        elif isinstance(packet, DeltaFrame) and seq is not None:
-            self._last_seq = seq
+
+    def _media_fallback(self, now: float) -> bool:
+        return self._media is not None and self._media.fallback(now)
+
+    def _bundle(self, packet: Packet, data: bytes, now: float) -> None:
+        assert self._media is not None
+        if isinstance(packet, RemPatch) and len(data) >= _PACED_PATCH_BYTES:
+            self._bundler.add_patch(data)
+        else:
+            self._bundler.add(data)
+        if isinstance(packet, Bye) or not self._paced:
+            # The last datagram leaves at once; so does every update of a caller that does not
+            # mark its frames' ends (end_frame), which bundles nothing.
+            for bundle in self._bundler.flush(now, math.inf):
+                self._media.send(bundle, now)
 
     @property
     def spare_peers(self) -> int:
@@ -490,6 +605,8 @@ class SenderEndpoint(_Endpoint):
         """Send a peer that reported late frames a second copy of each frame packet."""
         if identity not in self._served_at:
             return  # it has not joined: it could not use the copies
+        if self._on_udp(self._clock()) and not self._media_fallback(self._clock()):
+            return  # datagrams wait behind no retransmission: a copy would only add load
         if identity not in self._spare_until:
             if len(self._spare_until) >= MAX_SNAPSHOT_PEERS:
                 return
@@ -517,6 +634,10 @@ class SenderEndpoint(_Endpoint):
         if not self._inbox:
             self._read_router(timeout_ms)
         self._read_router(0)
+        if self._media is not None:
+            now = self._clock()
+            self._media.read(now)
+            self._media.service(now)
         out = list(self._inbox)
         self._inbox.clear()
         return out
@@ -567,15 +688,13 @@ class SenderEndpoint(_Endpoint):
         elif isinstance(packet, (KeyframeRequest, ReceiverStats)):
             self._accept(packet, data)
             self._inbox.append(packet)
+            if isinstance(packet, ReceiverStats) and packet.values.get("left"):
+                if self._media is not None:
+                    self._media.forget(identity)
             if isinstance(packet, ReceiverStats) and packet.values.get(LATE_FRAMES, 0) > 0:
                 self._open_spare(identity)
         else:
             self._drop(data, f"unexpected {type(packet).__name__} on the back channel")
-
-    def _accept(self, packet: Packet, data: bytes) -> None:
-        self.stats.received += 1
-        self.bytes_received[packet.CHANNEL] += len(data)
-        self.sizes_received[packet.CHANNEL][len(data)] += 1
 
     def _answer_probe(self) -> None:
         # One published Heartbeat answers every receiver probing within PROBE_INTERVAL_MS, so
@@ -585,7 +704,10 @@ class SenderEndpoint(_Endpoint):
             self.probes_unanswered += 1
             return
         self._last_probe_answer = now
-        self.publish(self._heartbeat())
+        heartbeat = self._heartbeat()
+        data = bytes(heartbeat)
+        self._accept_sent(heartbeat, data)
+        self._pub_send(data)  # on PUB: the joining receiver proves its SUB with it
 
     def _request(self, identity: bytes) -> None:
         now = time.monotonic()
@@ -614,6 +736,11 @@ class SenderEndpoint(_Endpoint):
 
     def _serve(self, identity: bytes, now: float) -> None:
         try:
+            if self._media is not None:  # the media key first: the snapshot ends the join
+                key = self._media.offer(identity, self._clock())
+                data = bytes(key)
+                self._router.send_multipart([identity, data], zmq.NOBLOCK)
+                self._accept_sent(key, data)
             # Never blocks: a peer that left SNAPSHOT_HWM replies unread gets no more.
             self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK, copy=False)
         except zmq.Again:
@@ -654,6 +781,7 @@ class ReceiverEndpoint(_Endpoint):
         server_key_file: KeyFile | None = None,
         plain: bool = False,
         bind: bool = False,
+        udp: bool = True,
     ) -> None:
         has_keys = secret_key_file is not None or server_key_file is not None
         _check_mode(plain, has_keys, "receiver", "secret_key_file, server_key_file")
@@ -686,13 +814,20 @@ class ReceiverEndpoint(_Endpoint):
         self._poller.register(self._monitors[0], zmq.POLLIN)
         # Subscribe first (Clone pattern), then attach the request socket.
         self._sub.setsockopt(zmq.SUBSCRIBE, b"")
+        self._media: ReceiverMediaPath | None = None
         try:
             self._ports = _attach(
                 [self._sub, self._dealer], host, (pub_port, snapshot_port), bind, "receiver"
             )
+            self._media = _open_media(ReceiverMediaPath, host, self._ports[0], bind, udp)
         except BaseException:
             self.close()
             raise
+        if self._media is not None:
+            self._poller.register(self._media.fileno(), zmq.POLLIN)
+        self._datagram_packets: deque[bytes] = deque()
+        self._recent: set[int] = set()  # digests of the last updates taken (both paths)
+        self._recent_order: deque[int] = deque()
         where = "on" if bind else "from"
         self._pub_address = f"tcp://{host}:{self._ports[0]}"
         self._snapshot_address = f"tcp://{host}:{self._ports[1]}"
@@ -718,6 +853,39 @@ class ReceiverEndpoint(_Endpoint):
         """(pub_port, snapshot_port) connected to, or bound."""
         return self._ports
 
+    def _release(self) -> None:
+        if self._media is not None:
+            self._media.close()
+
+    @property
+    def wire(self) -> WireCounts | None:
+        """The media path's datagrams and their bytes on the wire (None without one)."""
+        return None if self._media is None else self._media.counts
+
+    @property
+    def on_udp(self) -> bool:
+        """Whether the media come as datagrams now (else on SUB)."""
+        return self._media is not None and self._media.live(self._clock())
+
+    def _seen(self, data: bytes) -> bool:
+        """Whether these very bytes were taken lately (else remember them)."""
+        digest = hash(data)
+        if digest in self._recent:
+            return True
+        self._recent.add(digest)
+        self._recent_order.append(digest)
+        if len(self._recent_order) > _RECENT_UPDATES:
+            self._recent.discard(self._recent_order.popleft())
+        return False
+
+    def _read_datagrams(self) -> None:
+        if self._media is None:
+            return
+        now = self._clock()
+        now_ms = round(now * 1000)
+        self._datagram_packets.extend(self._media.read(now, now_ms))
+        self._media.service(now, now_ms)
+
     @property
     def peer_alive(self) -> bool:
         """False after PEER_TIMEOUT_S without a well-formed packet, or after a Bye."""
@@ -738,6 +906,7 @@ class ReceiverEndpoint(_Endpoint):
         self._check_open()
         if self.snapshot is not None:
             self._forget()
+        self._datagram_packets.clear()
         self._last_counter = None
         self._first_copy.clear()
         self._read_events()
@@ -780,6 +949,11 @@ class ReceiverEndpoint(_Endpoint):
                 continue
             if isinstance(packet, FRAME_KINDS):
                 continue  # a second-path copy of the stream being left
+            if isinstance(packet, MediaKey):
+                self._accept(packet, data)
+                if self._media is not None and packet.udp:
+                    self._media.take_key(packet, self._clock())
+                continue
             if not isinstance(packet, Snapshot):
                 self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
                 continue
@@ -807,6 +981,12 @@ class ReceiverEndpoint(_Endpoint):
             if self._rejoin_reason is not None:
                 raise RejoinNeeded(f"{self._rejoin_reason}; call fetch_snapshot() to rejoin")
             self._report_late()
+            self._read_datagrams()
+            if self._datagram_packets:
+                packet = self._take(self._datagram_packets.popleft())
+                if packet is not None:
+                    return packet
+                continue
             try:
                 packet = self._update(self._sub.recv_multipart(zmq.NOBLOCK))
             except zmq.Again:
@@ -816,7 +996,8 @@ class ReceiverEndpoint(_Endpoint):
                     remaining = _ms(deadline - time.monotonic())
                     if remaining <= 0:
                         return None
-                    self._poller.poll(remaining)
+                    # Wake for the media path's reports and hellos too.
+                    self._poller.poll(min(remaining, _ms(REPORT_INTERVAL_S / 2)))
                     continue
             if packet is not None:
                 return packet
@@ -826,6 +1007,8 @@ class ReceiverEndpoint(_Endpoint):
         frame packets over the second path too. The caller judges lateness (it knows the
         frames' capture times: receiver/lateness.py)."""
         self.stats.late_frames += 1
+        if self.on_udp:
+            return  # a datagram waits behind no retransmission: a second copy cannot help
         self._late += 1
         self._report_late()
 
@@ -895,9 +1078,7 @@ class ReceiverEndpoint(_Endpoint):
 
     def _take_snapshot(self, snapshot: Snapshot, data: bytes) -> None:
         self.snapshot = snapshot
-        self.stats.received += 1
-        self.bytes_received[snapshot.CHANNEL] += len(data)
-        self.sizes_received[snapshot.CHANNEL][len(data)] += 1
+        self._accept(snapshot, data)
         self._last_heard = self._clock()
 
     def _first(self, packet: KeyFrame | DeltaFrame, spare: bool) -> bool:
@@ -935,10 +1116,24 @@ class ReceiverEndpoint(_Endpoint):
         if len(frames) != 1:
             self._drop(data, f"{len(frames)}-part message")
             return None
+        return self._take(data, spare)
+
+    def _take(self, data: bytes, spare: bool = False) -> Packet | None:
+        """An update's bytes, from SUB, a datagram or the second path (``spare``)."""
         try:
             packet = decode(data)
         except PacketError as exc:
             self._drop(data, str(exc))
+            return None
+        if (
+            not spare
+            and isinstance(packet, MEDIA_KINDS)
+            and self._media is not None
+            and self._seen(data)
+        ):
+            # The same update by both paths: the sender publishes on PUB too while a path is
+            # opening or down.
+            self.stats.duplicates += 1
             return None
         if spare and not isinstance(packet, FRAME_KINDS):
             if isinstance(packet, Snapshot):

@@ -24,10 +24,13 @@ from protocol.packets import (
 from protocol.transport import SenderEndpoint, TransportError
 from sender.capture import CapturedFrame, CaptureError
 from sender.encoder import FaceEncoder
+from sender.rem import BUDGET_KBPS as REM_BUDGET_KBPS
 
 logger = logging.getLogger(__name__)
 
 FramePacket = KeyFrame | DeltaFrame
+#: How often the REM patches' budget follows the link's (frames).
+BUDGET_EVERY_FRAMES = 15
 #: What the sender publishes per frame: its REM patches, then its frame packet.
 UpdatePacket = KeyFrame | DeltaFrame | RemPatch
 
@@ -97,6 +100,11 @@ def run_sender(
         report.frames_in += 1
         next_seq = frame.index + 1
         endpoint.heartbeat_if_idle()
+        endpoint.end_frame()
+        if encoder.rem is not None and report.frames_in % BUDGET_EVERY_FRAMES == 0:
+            # The patches take what the link's budget leaves, never more than their own.
+            left_kbps = endpoint.patch_budget_bps() / 1000.0
+            encoder.rem.set_budget(min(REM_BUDGET_KBPS, left_kbps))
     endpoint.publish(Bye(seq=next_seq))
     _read_back_channel(endpoint, encoder, report, on_stats)
     return report

@@ -1,6 +1,7 @@
 """The second path: frame copies over ROUTER/DEALER for a receiver that reports late frames.
 
-Real ZeroMQ sockets on loopback. Where a test needs the copies to come in an order loopback
+It belongs to the media's TCP fallback (a datagram waits behind no retransmission), so these
+endpoints have no UDP media path. Real ZeroMQ sockets on loopback. Where a test needs the copies to come in an order loopback
 would not give by itself, the sender is a hand-made PUB and ROUTER pair that follows the
 joining handshake of docs/protocol.md 3.2.
 """
@@ -32,7 +33,7 @@ from receiver.lateness import LateFrames
 
 @pytest.fixture
 def sender(context: Context) -> Iterator[SenderEndpoint]:
-    s = SenderEndpoint(context=context, plain=True)
+    s = SenderEndpoint(context=context, plain=True, udp=False)
     s.set_snapshot(snapshot(seq=0))
     yield s
     s.close()
@@ -41,7 +42,7 @@ def sender(context: Context) -> Iterator[SenderEndpoint]:
 @pytest.fixture
 def receiver(sender: SenderEndpoint, context: Context) -> Iterator[ReceiverEndpoint]:
     pub, snap = sender.ports
-    r = ReceiverEndpoint("127.0.0.1", pub, snap, context=context, plain=True)
+    r = ReceiverEndpoint("127.0.0.1", pub, snap, context=context, plain=True, udp=False)
     join(sender, r)
     yield r
     r.close()

@@ -1,0 +1,126 @@
+"""The sender's rate control: how much the link carries, from the receiver's reports.
+
+Delay-based, in the spirit of WebRTC's GCC (draft-ietf-rmcat-gcc-02) and NADA (RFC 8698): a
+queue that grows is the signal to slow down, long before loss. Each reception report
+(protocol/bundle.py, :class:`Report`) names the newest datagram received and when it came on
+the receiver's clock. The sender remembers when it sent each datagram, so every report gives
+one one-way delay sample, offset by the unknown difference between the two clocks. The
+smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base delay, RFC
+6817); what a sample has above it is queueing.
+
+- Queueing over QUEUE_HIGH_MS, or loss over LOSS_HIGH: the rate falls to DECREASE times what
+  the receiver got over the last report interval (GCC's decrease), at most once per
+  DECREASE_HOLD_S, so one queue is not paid for twice.
+- Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
+  (multiplicatively, as GCC), but never past 1.5 times what the receiver got plus a
+  little, so a sender that has little to send does not claim a link it never tried.
+- In between: held.
+
+:class:`RateController` is pure: the transport feeds it reports and sends, and reads ``rate_bps``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+
+logger = logging.getLogger(__name__)
+
+QUEUE_HIGH_MS = 60.0
+QUEUE_LOW_MS = 20.0
+LOSS_HIGH = 0.10
+LOSS_LOW = 0.02
+DECREASE = 0.85
+DECREASE_HOLD_S = 0.5
+INCREASE = 0.08  # a second, multiplicative
+BASE_WINDOW_S = 30.0
+#: The rate never falls below this: the face's own geometry and the headers of a datagram every
+#: 100 ms fit in it.
+MIN_RATE_BPS = 6_000.0
+#: Where the estimate starts before any report: the call's default budget (its face and the
+#: sound fit in it).
+START_RATE_BPS = 64_000.0
+#: Send times kept to match reports against (about 60 s of datagrams at 30 a second).
+_SENT_KEPT = 2048
+
+
+@dataclass
+class Estimate:
+    """What the last report said, for the stats and the logs."""
+
+    queue_ms: float = 0.0
+    loss: float = 0.0
+    received_bps: float = 0.0
+
+
+class RateController:
+    """The link's estimated rate in bits per second (``rate_bps``), headers counted."""
+
+    def __init__(self, start_bps: float = START_RATE_BPS) -> None:
+        self.rate_bps = start_bps
+        self.last = Estimate()
+        self.decreases = 0
+        self._sent: dict[int, float] = {}  # datagram index (low 32 bits) -> send time, s
+        self._order: deque[int] = deque()
+        self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
+        self._prev: tuple[float, int, int, int] | None = None  # arrival s, highest, rx, bytes
+        self._last_decrease = -math.inf
+        self._last_update: float | None = None
+
+    def on_sent(self, index: int, now: float) -> None:
+        """A datagram of ``index`` left at ``now`` (seconds, sender's clock)."""
+        key = index & 0xFFFFFFFF
+        self._sent[key] = now
+        self._order.append(key)
+        while len(self._order) > _SENT_KEPT:
+            self._sent.pop(self._order.popleft(), None)
+
+    def on_report(
+        self, now: float, highest: int, arrival_ms: int, received: int, received_bytes: int
+    ) -> None:
+        """A reception report (the fields of bundle.Report) came at ``now``."""
+        sent_at = self._sent.get(highest & 0xFFFFFFFF)
+        if sent_at is None:
+            return  # a datagram this sender does not remember: nothing to learn
+        arrival_s = arrival_ms / 1000.0
+        delay = arrival_s - sent_at  # plus the clocks' offset
+        while self._base and self._base[-1][1] >= delay:
+            self._base.pop()
+        self._base.append((now, delay))
+        while now - self._base[0][0] > BASE_WINDOW_S:
+            self._base.popleft()
+        queue_ms = (delay - self._base[0][1]) * 1000.0
+        prev, self._prev = self._prev, (arrival_s, highest, received, received_bytes)
+        if prev is None:
+            self.last = Estimate(queue_ms, 0.0, 0.0)
+            self._last_update = now
+            return
+        span = arrival_s - prev[0]
+        expected = (highest - prev[1]) & 0xFFFFFFFF
+        got = (received - prev[2]) & 0xFFFFFFFF
+        if span <= 0 or expected == 0 or expected > 1 << 20:
+            return  # nothing new arrived since the last report (or a report came twice)
+        loss = max(0.0, 1.0 - got / expected)
+        received_bps = ((received_bytes - prev[3]) & 0xFFFFFFFF) * 8.0 / span
+        self.last = Estimate(queue_ms, loss, received_bps)
+        self._update(now, queue_ms, loss, received_bps)
+
+    def _update(self, now: float, queue_ms: float, loss: float, received_bps: float) -> None:
+        dt = 0.0 if self._last_update is None else min(1.0, now - self._last_update)
+        self._last_update = now
+        if queue_ms > QUEUE_HIGH_MS or loss > LOSS_HIGH:
+            if now - self._last_decrease >= DECREASE_HOLD_S:
+                self._last_decrease = now
+                self.decreases += 1
+                self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * received_bps))
+                logger.debug(
+                    "rate down to %.1f kbit/s (queue %.0f ms, loss %.0f%%)",
+                    self.rate_bps / 1000, queue_ms, loss * 100,
+                )  # fmt: skip
+            return
+        if queue_ms < QUEUE_LOW_MS and loss < LOSS_LOW:
+            ceiling = 1.5 * received_bps + 10_000.0
+            grown = self.rate_bps * (1.0 + INCREASE * dt)
+            self.rate_bps = max(self.rate_bps, min(grown, ceiling))

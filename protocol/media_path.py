@@ -1,0 +1,552 @@
+"""The media path for thin links: the call's updates as sealed UDP datagrams (version 3).
+
+ZeroMQ keeps what needs reliability (joining, the snapshot, the back channel) and hands over the
+keys: just before the snapshot the sender sends the receiver a :class:`MediaKey` on the
+CURVE-secured ROUTER/DEALER connection. From then on frame packets, REM patches, sound,
+heartbeats and the Bye travel bundled in datagrams (protocol/bundle.py) sealed with that key
+(protocol/datagram.py), and the receiver's reception reports come back the same way.
+
+Addresses: the end that binds its ZeroMQ sockets also binds a UDP socket on its first port's
+number (UDP and TCP ports are separate spaces); the end that connects sends to that address.
+Each end answers wherever the other's authentic datagrams come from (RTP's "symmetric" latching,
+so a NAT in between does no harm). The connecting end opens the path: it sends an empty
+datagram every HELLO_INTERVAL_S until the other answers.
+
+Fallback: a path is live while an authentic datagram came within PATH_TIMEOUT_S. A receiver
+that has not heard the sender's datagrams for that long (UDP blocked, or a firewall opened
+for TCP only) goes back to its SUB socket; a sender that has not heard a receiver's datagrams
+for that long publishes on PUB again (docs/protocol.md, 7.5). Each switch is logged in one line.
+
+:class:`Bundler` decides what goes in each datagram and when: everything due goes into one,
+one datagram per FRAMES_PER_DATAGRAM frames (fewer when the budget is thin), and REM patches,
+sliced where need be, take what the budget leaves.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import socket
+from collections import deque
+from dataclasses import dataclass, field
+
+from protocol.bundle import (
+    FRAGMENT,
+    FRAGMENT_HEADER,
+    MAX_DATAGRAM,
+    MAX_REASSEMBLED,
+    REPORT,
+    BundleError,
+    Fragment,
+    Reassembly,
+    Report,
+    element_size,
+    pack,
+    unpack,
+)
+from protocol.congestion import RateController
+from protocol.constants import PROTOCOL_VERSION
+from protocol.datagram import (
+    IP_UDP_BYTES,
+    OVERHEAD,
+    RECEIVER_TO_SENDER,
+    SENDER_TO_RECEIVER,
+    DatagramError,
+    Opener,
+    Sealer,
+    key_id_of,
+    new_secret,
+)
+from protocol.packets import MediaKey
+
+logger = logging.getLogger(__name__)
+
+#: A path with no authentic datagram for this long is down; the media go by ZeroMQ instead.
+PATH_TIMEOUT_S = 3.0
+#: The connecting end's empty datagrams while the path is not open yet, then while it is down.
+HELLO_INTERVAL_S = 0.1
+REPROBE_INTERVAL_S = 2.0
+#: The receiver's reception reports (what the rate control reads), one every so often.
+REPORT_INTERVAL_S = 0.25
+#: Bytes on the wire per datagram besides its bundle: IPv4, UDP and the datagram's own 12.
+DATAGRAM_COST = IP_UDP_BYTES + OVERHEAD
+#: The on-the-wire budget of one direction when none is given (the media of a call with sound
+#: fit in it with room for the datagrams' headers), bits per second.
+DEFAULT_BUDGET_BPS = 32_000.0
+#: The datagrams' headers take at most this share of the budget: one datagram per frame when
+#: the budget is wide, one per two, three or four frames as it narrows.
+HEADER_SHARE = 0.25
+MAX_FRAMES_PER_DATAGRAM = 4
+#: The token bucket of the sender's pacing holds this many seconds of the budget.
+BUCKET_S = 0.25
+#: Most datagrams read per call (bounds the time spent under a flood).
+_MAX_READ = 256
+_RECV_BYTES = 2048  # more than any datagram we send: a longer one is not ours
+
+
+def frames_per_datagram(budget_bps: float, fps: float) -> int:
+    """Frames whose updates share one datagram: the fewest that keep the datagrams' headers
+    within HEADER_SHARE of the budget (at most MAX_FRAMES_PER_DATAGRAM)."""
+    for k in range(1, MAX_FRAMES_PER_DATAGRAM):
+        if DATAGRAM_COST * 8 * fps / k <= HEADER_SHARE * budget_bps:
+            return k
+    return MAX_FRAMES_PER_DATAGRAM
+
+
+def _address(host: str, port: int) -> tuple[str, int]:
+    """An IPv4 address for ``host`` (resolved once: sendto would resolve it every time)."""
+    info = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+    address = info[0][4]
+    return str(address[0]), int(address[1])
+
+
+def _udp_socket(host: str, port: int, bind: bool) -> tuple[socket.socket, tuple[str, int] | None]:
+    """A non-blocking UDP socket: bound on ``host:port`` (``bind``), else on any free port with
+    ``host:port`` as the peer to open the path to."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setblocking(False)
+        if bind:
+            sock.bind(("0.0.0.0" if host in ("*", "") else host, port))
+            return sock, None
+        sock.bind(("0.0.0.0", 0))
+        return sock, _address(host, port)
+    except BaseException:
+        sock.close()
+        raise
+
+
+@dataclass
+class WireCounts:
+    """Datagrams and their bytes on the wire (IPv4 and UDP headers counted)."""
+
+    datagrams_sent: int = 0
+    wire_bytes_sent: int = 0
+    datagrams_received: int = 0
+    wire_bytes_received: int = 0
+    #: Dropped datagrams, by why: not ours or truncated, forged/altered, replayed.
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def drop(self, reason: str) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+
+
+def _why(exc: DatagramError) -> str:
+    text = str(exc)
+    if "replayed" in text:
+        return "replayed"
+    if "authentication" in text:
+        return "forged"
+    return "malformed"
+
+
+class _Path:
+    """What both ends share: the socket, the counts, liveness and the hellos."""
+
+    def __init__(self, host: str, port: int, bind: bool, side: str) -> None:
+        self.sock, self.dest = _udp_socket(host, port, bind)
+        self.side = side
+        self.counts = WireCounts()
+        self.closed = False
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def _sendto(self, datagram: bytes, address: tuple[str, int]) -> bool:
+        try:
+            self.sock.sendto(datagram, address)
+        except (BlockingIOError, InterruptedError):
+            self.counts.drop("send_queue_full")
+            return False
+        except OSError as exc:  # no route, unreachable port reported by ICMP
+            logger.debug("%s: datagram to %s not sent: %s", self.side, address, exc)
+            return False
+        self.counts.datagrams_sent += 1
+        self.counts.wire_bytes_sent += len(datagram) + IP_UDP_BYTES
+        return True
+
+    def _recv(self) -> tuple[bytes, tuple[str, int]] | None:
+        try:
+            data, address = self.sock.recvfrom(_RECV_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except OSError as exc:  # an ICMP error queued on the socket
+            logger.debug("%s: %s", self.side, exc)
+            return b"", ("", 0)
+        self.counts.datagrams_received += 1
+        self.counts.wire_bytes_received += len(data) + IP_UDP_BYTES
+        return data, address
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.sock.close()
+
+
+# --- the sender's end ---------------------------------------------------------------------------
+
+
+@dataclass
+class _Receiver:
+    """One receiver the sender gave a key."""
+
+    key_id: int
+    sealer: Sealer
+    opener: Opener
+    offered_at: float
+    address: tuple[str, int] | None = None
+    last_heard: float = -math.inf
+    controller: RateController = field(default_factory=RateController)
+    live_told: bool = False
+    fallback_told: bool = False
+    last_hello: float = -math.inf
+
+    def live(self, now: float) -> bool:
+        return self.address is not None and now - self.last_heard < PATH_TIMEOUT_S
+
+
+class SenderMediaPath(_Path):
+    """The sender's UDP socket and the receivers it has keyed (by ROUTER identity)."""
+
+    def __init__(self, host: str, port: int, bind: bool) -> None:
+        super().__init__(host, port, bind, "sender")
+        self._by_identity: dict[bytes, _Receiver] = {}
+        self._by_key: dict[int, _Receiver] = {}
+        self._next_key = int.from_bytes(os.urandom(1), "big")
+
+    def offer(self, identity: bytes, now: float) -> MediaKey:
+        """A new key for the receiver ``identity`` (replacing any it had)."""
+        self.forget(identity)
+        if len(self._by_key) >= 256:
+            oldest = min(self._by_identity, key=lambda i: self._by_identity[i].offered_at)
+            self.forget(oldest)
+        while self._next_key in self._by_key:
+            self._next_key = (self._next_key + 1) % 256
+        key_id, self._next_key = self._next_key, (self._next_key + 1) % 256
+        secret = new_secret()
+        peer = _Receiver(
+            key_id,
+            Sealer(secret, SENDER_TO_RECEIVER, key_id),
+            Opener(secret, RECEIVER_TO_SENDER, key_id),
+            now,
+        )
+        self._by_identity[identity] = self._by_key[key_id] = peer
+        return MediaKey(key_id, secret, 1)
+
+    def forget(self, identity: bytes) -> None:
+        peer = self._by_identity.pop(identity, None)
+        if peer is not None:
+            del self._by_key[peer.key_id]
+
+    def read(self, now: float) -> None:
+        """Take in the receivers' datagrams: open paths, reception reports."""
+        for _ in range(_MAX_READ):
+            got = self._recv()
+            if got is None:
+                return
+            data, address = got
+            key_id = key_id_of(data)
+            peer = None if key_id is None else self._by_key.get(key_id)
+            if peer is None:
+                self.counts.drop("malformed")
+                continue
+            try:
+                _, bundle = peer.opener.open(data)
+                elements = list(unpack(bundle))
+                reports = [Report.parse(e) for e in elements if e[0] == REPORT]
+                if len(reports) != len(elements):
+                    raise BundleError("a receiver's datagram carries only reports")
+            except DatagramError as exc:
+                self.counts.drop(_why(exc))
+                continue
+            except BundleError:
+                self.counts.drop("malformed")
+                continue
+            fresh = not peer.live(now)
+            peer.address, peer.last_heard = address, now
+            if fresh:
+                self._opened(peer, now)
+            for report in reports:
+                peer.controller.on_report(
+                    now, report.highest, report.arrival_ms, report.received, report.received_bytes
+                )
+
+    def _opened(self, peer: _Receiver, now: float) -> None:
+        if not peer.live_told or peer.fallback_told:
+            logger.warning(
+                "media: datagrams (UDP) with the receiver at %s:%d", *(peer.address or ("?", 0))
+            )
+        peer.live_told, peer.fallback_told = True, False
+        self._seal_to(peer, b"", now)  # the receiver learns the path works both ways
+
+    def service(self, now: float) -> None:
+        """Hellos from a connecting sender; one line when a receiver's path goes down."""
+        for peer in self._by_key.values():
+            if peer.live(now):
+                continue
+            if self.dest is not None and now - peer.last_hello >= HELLO_INTERVAL_S:
+                peer.last_hello = now
+                self._seal_to(peer, b"", now, self.dest)
+            if now - max(peer.offered_at, peer.last_heard) >= PATH_TIMEOUT_S:
+                if not peer.fallback_told:
+                    peer.fallback_told = True
+                    logger.warning(
+                        "media: no datagram from a receiver for %g s (UDP blocked?): "
+                        "its media go by ZeroMQ over TCP",
+                        PATH_TIMEOUT_S,
+                    )
+
+    def live(self, now: float) -> list[_Receiver]:
+        return [p for p in self._by_key.values() if p.live(now)]
+
+    def fallback(self, now: float) -> bool:
+        """Whether a keyed receiver has no live path (its media must go by PUB)."""
+        return any(
+            not p.live(now) and now - p.offered_at >= PATH_TIMEOUT_S for p in self._by_key.values()
+        )
+
+    def budget_bps(self, now: float, most: float) -> float:
+        """The sending budget: ``most``, or less where a receiver's link carries less."""
+        rates = [p.controller.rate_bps for p in self.live(now)]
+        return min([most, *rates])
+
+    def send(self, bundle: bytes, now: float) -> int:
+        """Seal ``bundle`` to every live receiver; how many it went to."""
+        sent = 0
+        for peer in self.live(now):
+            sent += self._seal_to(peer, bundle, now)
+        return sent
+
+    def _seal_to(
+        self, peer: _Receiver, bundle: bytes, now: float, to: tuple[str, int] | None = None
+    ) -> bool:
+        address = to or peer.address
+        if address is None:
+            return False
+        index = peer.sealer.index
+        if not self._sendto(peer.sealer.seal(bundle), address):
+            return False
+        peer.controller.on_sent(index, now)
+        return True
+
+
+class Bundler:
+    """What goes in the sender's next datagram, and when it leaves.
+
+    Updates handed to :meth:`add` wait for the end of the frame that made them; every
+    ``frames_per_datagram`` frames (from the budget: :func:`frames_per_datagram`) all that waits
+    leaves in one datagram (more only if it does not fit in MAX_DATAGRAM bytes). REM patches
+    (:meth:`add_patch`) leave as the budget allows: a token bucket of the budget pays for the
+    rest first, and what is left carries patches, whole or in fragments.
+    """
+
+    def __init__(self, fps: float) -> None:
+        self.fps = fps
+        self._due: list[bytes] = []
+        self._patches: deque[tuple[int, bytes, int]] = deque()  # message, packet, offset sent
+        self._message = 0
+        self._frames = 0
+        self._tokens = 0.0
+        self._filled: float | None = None
+        self.patch_bytes_waiting = 0
+        self.k = 1
+        #: What leaves whatever the budget (frames, sound, heartbeats), bits per second: an
+        #: average over about a second.
+        self.due_bps = 0.0
+        self._due_bytes = 0
+        self._due_since: float | None = None
+
+    def add(self, data: bytes) -> None:
+        self._due.append(data)
+        self._due_bytes += len(data)
+
+    def add_patch(self, data: bytes) -> None:
+        if len(data) > MAX_REASSEMBLED:
+            raise ValueError(f"a {len(data)}-byte patch is too large for a datagram's fragments")
+        self._message = (self._message + 1) % 256
+        self._patches.append((self._message, data, 0))
+        self.patch_bytes_waiting += len(data)
+
+    def end_frame(self, now: float, budget_bps: float) -> list[bytes]:
+        """The bundles to send now that a frame is done (none until the k-th frame)."""
+        self._frames += 1
+        if self._due_since is None:
+            self._due_since = now
+        elif now - self._due_since >= 1.0:
+            rate = self._due_bytes * 8.0 / (now - self._due_since)
+            self.due_bps = rate if self.due_bps == 0 else 0.5 * (self.due_bps + rate)
+            self._due_bytes, self._due_since = 0, now
+        self.k = frames_per_datagram(budget_bps, self.fps)
+        if self._frames < self.k:
+            return []
+        self._frames = 0
+        return self.flush(now, budget_bps)
+
+    def flush(self, now: float, budget_bps: float) -> list[bytes]:
+        """Everything due, now, and what the budget allows of the patches."""
+        if not self._due and not self._patches:
+            return []
+        rate = min(budget_bps, 1e9) / 8.0  # a Bye's flush pays whatever it costs
+        if self._filled is not None:
+            self._tokens = min(rate * BUCKET_S, self._tokens + rate * (now - self._filled))
+        self._filled = now
+        out: list[bytes] = []
+        elements: list[bytes] = []
+        size = 0
+        for element in self._due:
+            need = element_size(len(element))
+            if elements and size + need > MAX_DATAGRAM - OVERHEAD:
+                out.append(pack(elements))
+                elements, size = [], 0
+            elements.append(element)
+            size += need
+        self._due.clear()
+        spend = size + DATAGRAM_COST * (len(out) + 1)
+        room = int(min(MAX_DATAGRAM - OVERHEAD - size, self._tokens - spend))
+        while self._patches and room > FRAGMENT_HEADER + 16:
+            message, packet, offset = self._patches[0]
+            if offset == 0 and element_size(len(packet)) <= room:
+                chunk, taken = packet, len(packet)
+            else:
+                taken = min(len(packet) - offset, room - FRAGMENT_HEADER - 3)
+                part = packet[offset : offset + taken]
+                chunk = bytes(Fragment(message, len(packet), offset, part))
+            if offset + taken >= len(packet):
+                self._patches.popleft()
+            else:
+                self._patches[0] = (message, packet, offset + taken)
+            self.patch_bytes_waiting -= taken
+            elements.append(chunk)
+            room -= element_size(len(chunk))
+            spend += element_size(len(chunk))
+        out.append(pack(elements))
+        self._tokens -= spend
+        return out
+
+
+# --- the receiver's end -------------------------------------------------------------------------
+
+
+class ReceiverMediaPath(_Path):
+    """The receiver's UDP socket: opens the sender's datagrams, sends reports and hellos."""
+
+    def __init__(self, host: str, port: int, bind: bool) -> None:
+        super().__init__(host, port, bind, "receiver")
+        self._sealer: Sealer | None = None
+        self._opener: Opener | None = None
+        self._keyed_at = -math.inf
+        self._peer: tuple[str, int] | None = None
+        self.last_heard = -math.inf
+        self._last_hello = -math.inf
+        self._last_report = -math.inf
+        self._reassembly = Reassembly()
+        self._highest = 0
+        self._arrival_ms = 0
+        self._received = 0
+        self._received_bytes = 0
+        self._live_told = False
+        self._fallback_told = False
+        self.malformed = 0  # elements of authentic datagrams that were malformed
+
+    @property
+    def keyed(self) -> bool:
+        return self._opener is not None
+
+    def take_key(self, key: MediaKey, now: float) -> None:
+        """The sender's key for this join (each join brings a new one)."""
+        self._sealer = Sealer(key.secret, RECEIVER_TO_SENDER, key.key_id)
+        self._opener = Opener(key.secret, SENDER_TO_RECEIVER, key.key_id)
+        self._keyed_at = now
+        self._peer = None
+        self.last_heard = -math.inf
+        self._reassembly = Reassembly()
+        self._received = self._received_bytes = 0
+        self._live_told = self._fallback_told = False
+
+    def live(self, now: float) -> bool:
+        return now - self.last_heard < PATH_TIMEOUT_S
+
+    def read(self, now: float, now_ms: int) -> list[bytes]:
+        """The version-2 packets in the datagrams that came (fragments put together)."""
+        out: list[bytes] = []
+        if self._opener is None:
+            return out
+        for _ in range(_MAX_READ):
+            got = self._recv()
+            if got is None:
+                break
+            data, address = got
+            try:
+                index, bundle = self._opener.open(data)
+                elements = list(unpack(bundle))
+            except DatagramError as exc:
+                self.counts.drop(_why(exc))
+                continue
+            except BundleError:
+                self.counts.drop("malformed")
+                continue
+            fresh = not self.live(now)
+            self._peer, self.last_heard = address, now
+            self._highest, self._arrival_ms = index, now_ms
+            self._received += 1
+            self._received_bytes += len(data)
+            if fresh:
+                self._opened(now)
+            for element in elements:
+                packet = self._element(element)
+                if packet is not None:
+                    out.append(packet)
+        return out
+
+    def _element(self, element: bytes) -> bytes | None:
+        kind = element[0]
+        if kind >> 4 == PROTOCOL_VERSION:
+            return element
+        if kind == FRAGMENT:
+            try:
+                return self._reassembly.add(Fragment.parse(element))
+            except BundleError:
+                pass
+        self.malformed += 1
+        return None
+
+    def _opened(self, now: float) -> None:
+        if not self._live_told or self._fallback_told:
+            logger.warning("media: datagrams (UDP) from the sender at %s:%d", *self._peer_or())
+        self._live_told, self._fallback_told = True, False
+
+    def _peer_or(self) -> tuple[str, int]:
+        return self._peer or self.dest or ("?", 0)
+
+    @property
+    def patches_lost(self) -> int:
+        return self._reassembly.lost
+
+    def service(self, now: float, now_ms: int) -> None:
+        """Hellos while the path is not open; reception reports while it is."""
+        if self._sealer is None:
+            return
+        if self.live(now):
+            if now - self._last_report >= REPORT_INTERVAL_S:
+                self._last_report = now
+                report = Report(self._highest, self._arrival_ms, self._received,
+                                self._received_bytes)  # fmt: skip
+                self._send(pack([bytes(report)]))
+            return
+        since = now - max(self._keyed_at, self.last_heard)
+        if since >= PATH_TIMEOUT_S and not self._fallback_told:
+            self._fallback_told = True
+            logger.warning(
+                "media: no datagram from the sender for %g s (UDP blocked?): media over ZeroMQ/TCP",
+                PATH_TIMEOUT_S,
+            )
+        interval = HELLO_INTERVAL_S if since < PATH_TIMEOUT_S else REPROBE_INTERVAL_S
+        if now - self._last_hello >= interval:
+            self._last_hello = now
+            self._send(b"")
+
+    def _send(self, bundle: bytes) -> None:
+        address = self._peer or self.dest
+        if self._sealer is not None and address is not None:
+            self._sendto(self._sealer.seal(bundle), address)
