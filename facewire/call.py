@@ -410,6 +410,7 @@ def send(
                 on_stats=lambda values: presence.on_stats(values, tell),
             )
         finally:
+            media = endpoint.media_figures()
             endpoint.close(linger_s=LINGER_S)  # the Bye gets out
     finally:
         source.close()
@@ -429,6 +430,7 @@ def send(
         "fps": source.video.fps,
         "bytes_sent": dict(endpoint.bytes_sent),
         "bytes_received": dict(endpoint.bytes_received),
+        "media": media,
         "stopped": report.stopped or stop(),
     }
 

@@ -44,6 +44,7 @@ This is the only module that imports zmq.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -289,6 +290,8 @@ def _check_mode(plain: bool, has_keys: bool, side: str, names: str) -> None:
 class _Endpoint:
     """Context handling and byte counters shared by both ends."""
 
+    _media: SenderMediaPath | ReceiverMediaPath | None = None
+
     def __init__(
         self, context: zmq.Context[zmq.Socket[bytes]] | None, clock: Callable[[], float]
     ) -> None:
@@ -307,6 +310,15 @@ class _Endpoint:
         #: ZeroMQ framing and TCP/IP headers is paid per message).
         self.sizes_sent: dict[str, Counter[int]] = {ch: Counter() for ch in CHANNELS}
         self.sizes_received: dict[str, Counter[int]] = {ch: Counter() for ch in CHANNELS}
+
+    def media_figures(self) -> dict[str, object]:
+        """The media path's counts for the stats: datagrams and wire bytes each way, drops."""
+        if self._media is None:
+            return {"udp": False}
+        return {"udp": True, **dataclasses.asdict(self._media.counts), **self._media_extra()}
+
+    def _media_extra(self) -> dict[str, object]:
+        return {}
 
     def now_us(self) -> int:
         """The endpoint's clock in integer microseconds (``sent_us`` of heartbeats)."""
@@ -491,6 +503,18 @@ class SenderEndpoint(_Endpoint):
     @property
     def frames_per_datagram(self) -> int:
         return self._bundler.k
+
+    def _media_extra(self) -> dict[str, object]:
+        assert self._media is not None
+        peers = self._media.live(self._clock())
+        last = peers[0].controller.last if peers else None
+        return {
+            "frames_per_datagram": self._bundler.k,
+            "budget_kbps": self.budget_bps() / 1000,
+            "rate_decreases": sum(p.controller.decreases for p in peers),
+            "queue_ms": None if last is None else last.queue_ms,
+            "loss": None if last is None else last.loss,
+        }
 
     def _on_udp(self, now: float) -> bool:
         return self._media is not None and bool(self._media.live(now))
@@ -861,6 +885,14 @@ class ReceiverEndpoint(_Endpoint):
     def wire(self) -> WireCounts | None:
         """The media path's datagrams and their bytes on the wire (None without one)."""
         return None if self._media is None else self._media.counts
+
+    def _media_extra(self) -> dict[str, object]:
+        assert self._media is not None
+        return {
+            "duplicates": self.stats.duplicates,
+            "patches_lost": self._media.patches_lost,
+            "malformed_elements": self._media.malformed,
+        }
 
     @property
     def on_udp(self) -> bool:

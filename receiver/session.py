@@ -84,6 +84,9 @@ class ReceiverReport:
     # The second path (protocol/transport.py): frames that came late, copies dropped, copies
     # that came LATE_FRAME_MS or more after the first, and of those the frames it brought first.
     second_path: dict[str, int] = field(default_factory=dict)
+    # The media path (protocol/media_path.py): datagrams and their bytes on the wire each way,
+    # those dropped by why, updates that came by both paths.
+    media: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
@@ -113,6 +116,7 @@ class ReceiverReport:
             "audio": self.audio,
             "rem": dict(self.rem),
             "second_path": dict(self.second_path),
+            "media": dict(self.media),
             "playout": {
                 "mode": self.playout,
                 "display_fps": self.display_fps,
@@ -270,6 +274,7 @@ def run_receiver(
         }
         report.bytes_received = dict(endpoint.bytes_received)
         report.bytes_sent = dict(endpoint.bytes_sent)
+        report.media = endpoint.media_figures()
         endpoint.close(linger_s=LINGER_S)
     return report
 

@@ -281,3 +281,30 @@ def test_worked_example_in_the_doc_is_what_the_code_sends() -> None:
         if packet is not None:
             sent.append((bytes(packet), (seq, 0, values)))
     assert [p for p, _ in sent] == [p for p, _ in example]
+
+
+def _hex_block(after: str) -> bytes:
+    """The hex bytes of the first fenced block after ``after`` in section 8.7 (comments
+    after two spaces dropped)."""
+    section = DOC.read_text().split("### 8.7 Worked example", 1)[1]
+    block = section.split(after, 1)[1].split("```", 2)[1]
+    words = []
+    for line in block.strip().splitlines():
+        words += line.split("  ")[0].split()
+    return bytes.fromhex("".join(words))
+
+
+def test_worked_datagram_in_the_doc_is_what_the_code_seals() -> None:
+    from protocol.bundle import Report, pack
+    from protocol.datagram import SENDER_TO_RECEIVER, Opener, Sealer
+    from protocol.packets import Heartbeat
+
+    secret = bytes(range(32))
+    sealer = Sealer(secret, SENDER_TO_RECEIVER, 7)
+    sealer.index = 0x1234
+    bundle = pack([bytes(Heartbeat(3050556106, 42, 1_000_000))])
+    datagram = sealer.seal(bundle)
+    assert _hex_block("The datagram (26 bytes):") == datagram
+    assert Opener(secret, SENDER_TO_RECEIVER, 7).open(datagram) == (0x1234, bundle)
+    report = bytes(Report(0x1234, 123456, 100, 4200)).hex(" ")
+    assert f"`{report}`" in DOC.read_text()
