@@ -42,6 +42,11 @@ MIN_RATE_BPS = 6_000.0
 #: Where the estimate starts before any report: the call's default budget (its face and the
 #: sound fit in it).
 START_RATE_BPS = 64_000.0
+#: Loss (a slow average of the reports') over which the sender repeats each datagram's updates
+#: in the next one, and under which it stops.
+LOSS_REPEAT_ON = 0.01
+LOSS_REPEAT_OFF = 0.002
+_LOSS_AVERAGE = 0.1  # weight of each report in that average (about 2.5 s at 4 a second)
 #: Send times kept to match reports against (about 60 s of datagrams at 30 a second).
 _SENT_KEPT = 2048
 
@@ -62,6 +67,8 @@ class RateController:
         self.rate_bps = start_bps
         self.last = Estimate()
         self.decreases = 0
+        self.loss_average = 0.0
+        self.lossy = False
         self._sent: dict[int, float] = {}  # datagram index (low 32 bits) -> send time, s
         self._order: deque[int] = deque()
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
@@ -103,6 +110,11 @@ class RateController:
         if span <= 0 or expected == 0 or expected > 1 << 20:
             return  # nothing new arrived since the last report (or a report came twice)
         loss = max(0.0, 1.0 - got / expected)
+        self.loss_average += _LOSS_AVERAGE * (loss - self.loss_average)
+        if self.loss_average > LOSS_REPEAT_ON:
+            self.lossy = True
+        elif self.loss_average < LOSS_REPEAT_OFF:
+            self.lossy = False
         received_bps = ((received_bytes - prev[3]) & 0xFFFFFFFF) * 8.0 / span
         self.last = Estimate(queue_ms, loss, received_bps)
         self._update(now, queue_ms, loss, received_bps)

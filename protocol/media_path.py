@@ -339,11 +339,17 @@ class Bundler:
     leaves in one datagram (more only if it does not fit in MAX_DATAGRAM bytes). REM patches
     (:meth:`add_patch`) leave as the budget allows: a token bucket of the budget pays for the
     rest first, and what is left carries patches, whole or in fragments.
+
+    ``redundant``: on a lossy link each datagram carries the last one's updates again (not its
+    patches), as RFC 2198's redundant audio does, so one lost datagram loses nothing; the
+    receiver drops the second copies.
     """
 
     def __init__(self, fps: float) -> None:
         self.fps = fps
         self._due: list[bytes] = []
+        self._last_due: list[bytes] = []
+        self.redundant = False
         self._patches: deque[tuple[int, bytes, int]] = deque()  # message, packet, offset sent
         self._message = 0
         self._frames = 0
@@ -394,14 +400,18 @@ class Bundler:
         out: list[bytes] = []
         elements: list[bytes] = []
         size = 0
-        for element in self._due:
+        again = self._last_due if self.redundant else []
+        room_again = sum(element_size(len(e)) for e in again + self._due)
+        if room_again > MAX_DATAGRAM - OVERHEAD:
+            again = []  # a repeat never takes a datagram of its own
+        for element in again + self._due:
             need = element_size(len(element))
             if elements and size + need > MAX_DATAGRAM - OVERHEAD:
                 out.append(pack(elements))
                 elements, size = [], 0
             elements.append(element)
             size += need
-        self._due.clear()
+        self._last_due, self._due = self._due, []
         spend = size + DATAGRAM_COST * (len(out) + 1)
         room = int(min(MAX_DATAGRAM - OVERHEAD - size, self._tokens - spend))
         while self._patches and room > FRAGMENT_HEADER + 16:

@@ -512,6 +512,7 @@ class SenderEndpoint(_Endpoint):
             "frames_per_datagram": self._bundler.k,
             "budget_kbps": self.budget_bps() / 1000,
             "rate_decreases": sum(p.controller.decreases for p in peers),
+            "redundant": self._bundler.redundant,
             "queue_ms": None if last is None else last.queue_ms,
             "loss": None if last is None else last.loss,
         }
@@ -532,6 +533,7 @@ class SenderEndpoint(_Endpoint):
         now = self._clock()
         self._media.read(now)
         self._media.service(now)
+        self._bundler.redundant = any(p.controller.lossy for p in self._media.live(now))
         for bundle in self._bundler.end_frame(now, self.budget_bps()):
             self._media.send(bundle, now)
 

@@ -15,6 +15,9 @@ Run as a script by :class:`netns_pair.TwoHosts`::
 
 It prints ``ready`` once both devices are up in their namespaces, and relays until SIGTERM or
 until a namespace disappears. Packets are counted and the counts printed at the end.
+
+``--block-udp-after S`` makes it a firewall that closes UDP S seconds after ``ready`` (0: from
+the start): every IPv4 packet of protocol 17 is dropped from then on, TCP still passes.
 """
 
 from __future__ import annotations
@@ -58,8 +61,12 @@ def configure(namespace: str, device: str, address: str, peer: str) -> None:
 class Link:
     """Both directions of the emulated link."""
 
-    def __init__(self, delay_s: float, jitter_s: float, loss: float, seed: int) -> None:
+    def __init__(
+        self, delay_s: float, jitter_s: float, loss: float, seed: int, block_udp_at: float
+    ) -> None:
         self.delay_s, self.jitter_s, self.loss = delay_s, jitter_s, loss
+        self.block_udp_at = block_udp_at
+        self.blocked = 0
         self.rng = random.Random(seed)
         self.queue: list[tuple[float, int, int, bytes]] = []  # (due, order, out fd, packet)
         self.order = 0
@@ -67,6 +74,9 @@ class Link:
         self.dropped = 0
 
     def take(self, packet: bytes, out: int, now: float) -> None:
+        if now >= self.block_udp_at and len(packet) > 9 and packet[0] >> 4 == 4 and packet[9] == 17:
+            self.blocked += 1
+            return
         if self.rng.random() < self.loss:
             self.dropped += 1
             return
@@ -96,6 +106,7 @@ def main() -> int:
     p.add_argument("--jitter-ms", type=float, default=10.0)
     p.add_argument("--loss", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--block-udp-after", type=float, default=None, metavar="S")
     args = p.parse_args()
     stopping = False
 
@@ -108,7 +119,9 @@ def main() -> int:
     fd_a, fd_b = open_tun(args.dev_a), open_tun(args.dev_b)
     configure(args.ns_a, args.dev_a, args.addr_a, args.addr_b)
     configure(args.ns_b, args.dev_b, args.addr_b, args.addr_a)
-    link = Link(args.delay_ms / 1000, args.jitter_ms / 1000, args.loss, args.seed)
+    block = args.block_udp_after
+    block_at = float("inf") if block is None else time.monotonic() + block
+    link = Link(args.delay_ms / 1000, args.jitter_ms / 1000, args.loss, args.seed, block_at)
     other = {fd_a: fd_b, fd_b: fd_a}
     print("ready", flush=True)
     wait: float | None = None
@@ -129,7 +142,10 @@ def main() -> int:
                     break
                 link.take(packet, other[fd], now)
         wait = link.flush(time.monotonic())
-    print(f"relayed {link.relayed} packets, dropped {link.dropped}", flush=True)
+    print(
+        f"relayed {link.relayed} packets, dropped {link.dropped}, UDP blocked {link.blocked}",
+        flush=True,
+    )
     return 0
 
 

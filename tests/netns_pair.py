@@ -90,11 +90,16 @@ class TwoHosts:
     ``how`` says which link was made ("veth + tc netem" or "TUN + user-space netem").
     """
 
-    def __init__(self, netem: Netem | None = None, seed: int = 1) -> None:
+    def __init__(
+        self, netem: Netem | None = None, seed: int = 1, block_udp_after: float | None = None
+    ) -> None:
+        """``block_udp_after``: a firewall on the link drops UDP from that many seconds on
+        (the user-space link, whatever the kernel has)."""
         n = f"{os.getpid() % 100000}x{next(_count)}"
         self.a, self.b = f"fwa{n}", f"fwb{n}"
         self.netem = netem or Netem()
         self.seed = seed
+        self.block_udp_after = block_udp_after
         self.how = ""
         self.relayed = ""  # the link emulator's packet counts, once closed
         self._relay: subprocess.Popen[str] | None = None
@@ -104,7 +109,7 @@ class TwoHosts:
             for ns in (self.a, self.b):
                 _run("ip", "netns", "add", ns)
                 _run("ip", "-n", ns, "link", "set", "lo", "up")
-            if kernel_has_netem():
+            if kernel_has_netem() and self.block_udp_after is None:
                 self._veth()
             else:
                 self._tun()
@@ -132,6 +137,11 @@ class TwoHosts:
                 *(self.a, f"{self.a}t", ADDRESS_A, self.b, f"{self.b}t", ADDRESS_B),
                 *("--delay-ms", str(netem.delay_ms), "--jitter-ms", str(netem.jitter_ms)),
                 *("--loss", str(netem.loss), "--seed", str(self.seed)),
+                *(
+                    ()
+                    if self.block_udp_after is None
+                    else ("--block-udp-after", str(self.block_udp_after))
+                ),
             ],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
