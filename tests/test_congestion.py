@@ -1,0 +1,224 @@
+"""The sender's delay-based rate control, fed synthetic send times and reception reports."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+from protocol.bundle import Report
+from protocol.congestion import (
+    DECREASE,
+    DECREASE_HOLD_S,
+    MIN_RATE_BPS,
+    START_RATE_BPS,
+    RateController,
+)
+
+T0 = 100.0  # the sender's clock at the start, s
+FPS = 20  # datagrams a second: 5 in each report interval
+SIZE = 150  # UDP payload bytes of each: 24 kbit/s received when none is lost
+RECEIVED_BPS = SIZE * 8 * FPS
+
+
+@dataclass
+class Step:
+    """The controller after one report."""
+
+    now: float
+    rate_bps: float
+    decreases: int
+    queue_ms: float
+    loss: float
+    received_bps: float
+
+
+def simulate(
+    controller: RateController,
+    seconds: float,
+    *,
+    delay: Callable[[float], float] = lambda t: 0.05,
+    lost: Callable[[int], bool] = lambda n: False,
+    offset_s: float = 0.0,
+    report_every: float = 0.25,
+    index0: int = 70_000,
+    extra: Callable[[RateController, float], None] | None = None,
+) -> list[Step]:
+    """Datagrams sent at FPS from T0 (one-way ``delay(send time)``, ``lost(n)`` never arrive),
+    the receiver's report every ``report_every`` (its clock ``offset_s`` ahead), each reaching
+    the sender 10 ms later. ``extra(controller, now)`` runs before each report."""
+    sends = [(T0 + n / FPS, index0 + n) for n in range(int(seconds * FPS))]
+    arrivals = sorted((t + delay(t), n) for n, (t, _) in enumerate(sends) if not lost(n))
+    steps: list[Step] = []
+    sent = got = 0
+    received = nbytes = 0
+    highest = arrived_at = None
+    k = 1
+    while True:
+        at = T0 + k * report_every + 0.1  # the receiver's report, its time on the sender's clock
+        if at > T0 + seconds:
+            return steps
+        while sent < len(sends) and sends[sent][0] <= at + 0.01:
+            controller.on_sent(sends[sent][1], sends[sent][0])
+            sent += 1
+        while got < len(arrivals) and arrivals[got][0] <= at:
+            arrival, n = arrivals[got]
+            got += 1
+            received += 1
+            nbytes += SIZE
+            if highest is None or sends[n][1] > highest:
+                highest, arrived_at = sends[n][1], arrival
+        k += 1
+        if highest is None:
+            continue
+        now = at + 0.01
+        if extra is not None:
+            extra(controller, now)
+        wire = Report(highest, round((arrived_at + offset_s) * 1000), received, nbytes)
+        report = Report.parse(bytes(wire))
+        controller.on_report(
+            now, report.highest, report.arrival_ms, report.received, report.received_bytes
+        )
+        last = controller.last
+        steps.append(
+            Step(now, controller.rate_bps, controller.decreases, last.queue_ms, last.loss,
+                 last.received_bps)
+        )  # fmt: skip
+
+
+def growing_queue(since: float, per_s: float = 0.1) -> Callable[[float], float]:
+    """50 ms, then ``per_s`` more every second from ``since`` s after the start."""
+    return lambda t: 0.05 + max(0.0, t - T0 - since) * per_s
+
+
+def every_fifth(n: int) -> bool:
+    return n % 5 == 2
+
+
+#: A steady path, a queue that starts to grow after 2 s, one datagram in five lost.
+SCENARIOS: list[dict[str, Any]] = [{}, {"delay": growing_queue(since=2)}, {"lost": every_fifth}]
+
+
+def test_starts_at_the_default_budget() -> None:
+    assert RateController().rate_bps == START_RATE_BPS == 64_000
+
+
+def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
+    controller = RateController(start_bps=20_000)
+    steps = simulate(controller, 40)
+    ceiling = 1.5 * RECEIVED_BPS + 10_000
+    assert steps[0].received_bps == 0  # the first report only starts the count
+    assert all(s.received_bps == pytest.approx(RECEIVED_BPS, rel=0.01) for s in steps[1:])
+    assert all(s.queue_ms == pytest.approx(0, abs=1) and s.loss == 0 for s in steps)
+    rates = [s.rate_bps for s in steps]
+    assert rates == sorted(rates)  # never falls
+    after_5s = next(s.rate_bps for s in steps if s.now >= T0 + 5)
+    assert 20_000 * 1.3 < after_5s < 20_000 * 1.6  # about 8% a second
+    assert max(rates) <= 1.5 * max(s.received_bps for s in steps) + 10_000 + 1e-6
+    assert rates[-1] == pytest.approx(ceiling, rel=0.02)
+    assert controller.decreases == 0
+
+
+def test_not_raised_past_what_was_received() -> None:
+    """A sender with little to send does not claim a link it never tried."""
+    controller = RateController()  # 64 kbit/s, above 1.5 x 24 + 10
+    simulate(controller, 20)
+    assert controller.rate_bps == START_RATE_BPS
+
+
+def test_growing_queue_brings_the_rate_down() -> None:
+    controller = RateController()
+    steps = simulate(controller, 12, delay=growing_queue(since=4))
+    first = next(i for i, s in enumerate(steps) if s.queue_ms > 60)
+    assert all(s.decreases == 0 for s in steps[:first])
+    cut = steps[first]
+    assert cut.decreases == 1
+    assert cut.rate_bps == pytest.approx(DECREASE * cut.received_bps)
+    # The queue grows by 0.1 s a second: the receiver gets 1/1.1 of what is sent.
+    assert cut.received_bps == pytest.approx(RECEIVED_BPS / 1.1, rel=0.05)
+    assert steps[-1].rate_bps == pytest.approx(0.85 * RECEIVED_BPS / 1.1, rel=0.05)
+    assert steps[-1].queue_ms > 700
+
+
+def test_queue_under_the_high_mark_holds_the_rate() -> None:
+    """40 ms of queue, between 20 and 60: neither up nor down."""
+    controller = RateController()
+    steps = simulate(controller, 10, delay=lambda t: 0.05 if t < T0 + 3 else 0.09)
+    held = [s for s in steps if s.now > T0 + 3.5]
+    assert all(s.queue_ms == pytest.approx(40, abs=2) for s in held)
+    assert {s.rate_bps for s in held} == {held[0].rate_bps}
+    assert controller.decreases == 0
+
+
+def test_loss_brings_the_rate_down() -> None:
+    controller = RateController()
+    steps = simulate(controller, 5, lost=every_fifth)
+    assert steps[-1].loss == pytest.approx(0.2, abs=0.01)
+    assert controller.decreases >= 1
+    assert controller.rate_bps == pytest.approx(0.85 * 0.8 * RECEIVED_BPS, rel=0.05)
+
+
+def test_at_most_one_decrease_per_hold() -> None:
+    controller = RateController()
+    steps = simulate(controller, 8, delay=growing_queue(since=1), report_every=0.0625)
+    cuts = [
+        s.now for prev, s in zip(steps, steps[1:], strict=False) if s.decreases > prev.decreases
+    ]
+    assert steps[0].decreases == 0
+    assert len(cuts) >= 8  # the queue stays high: a cut every hold
+    gaps = [b - a for a, b in zip(cuts, cuts[1:], strict=False)]
+    assert min(gaps) >= DECREASE_HOLD_S - 1e-9
+    assert max(gaps) < DECREASE_HOLD_S + 0.0625 + 1e-9
+
+
+def test_never_below_the_minimum() -> None:
+    controller = RateController()
+    simulate(controller, 10, lost=lambda n: n % 50 != 0)  # 98% lost
+    assert controller.decreases >= 1
+    assert controller.rate_bps == MIN_RATE_BPS
+
+
+def test_reports_of_unknown_datagrams_change_nothing() -> None:
+    """A report naming a datagram the sender does not remember (never sent, or forgotten)."""
+
+    def unknown(controller: RateController, now: float) -> None:
+        for highest in (12, 69_999, 2**32 - 1, 10_000_000):
+            controller.on_report(now, highest, 5, 10**6, 10**9)
+
+    for scenario in SCENARIOS:
+        plain = simulate(RateController(start_bps=20_000), 8, **scenario)
+        noisy = simulate(RateController(start_bps=20_000), 8, extra=unknown, **scenario)
+        assert noisy == plain
+
+
+def test_unknown_report_alone_changes_nothing() -> None:
+    controller = RateController()
+    controller.on_sent(5, 1.0)
+    controller.on_report(1.1, 6, 1050, 1, 100)
+    assert controller.rate_bps == START_RATE_BPS
+    assert controller.last == RateController().last
+    assert controller.decreases == 0
+
+
+@pytest.mark.parametrize("offset_s", [1e6, -50.0, 4e6])
+def test_clock_offset_between_the_ends_changes_nothing(offset_s: float) -> None:
+    """Only differences of one-way delays count: the clocks' offset cancels."""
+    for scenario in SCENARIOS:
+        base = simulate(RateController(start_bps=20_000), 10, **scenario)
+        shifted = simulate(RateController(start_bps=20_000), 10, offset_s=offset_s, **scenario)
+        assert [s.rate_bps for s in shifted] == pytest.approx([s.rate_bps for s in base])
+        assert [s.decreases for s in shifted] == [s.decreases for s in base]
+        assert [s.queue_ms for s in shifted] == pytest.approx([s.queue_ms for s in base], abs=1e-3)
+
+
+def test_forgets_old_send_times() -> None:
+    """Send times are kept for about 2048 datagrams; a report of an older one is ignored."""
+    controller = RateController()
+    for i in range(3000):
+        controller.on_sent(i, i / 30)
+    controller.on_report(100.0, 10, 1000, 1, 100)  # forgotten
+    assert controller.last == RateController().last
+    controller.on_report(100.0, 2999, 100_050, 1, 100)  # remembered
+    assert controller.last.queue_ms == 0.0
