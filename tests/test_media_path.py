@@ -511,11 +511,12 @@ def test_replayed_and_forged_datagrams_are_dropped(call: Call) -> None:
 def test_report_names_the_highest_index_after_reordering(call: Call) -> None:
     """docs/protocol.md 8.3: a Report's ``highest`` is the highest index accepted.
 
-    BUG (protocol/media_path.py, ReceiverMediaPath.read, line 491): every accepted datagram
-    sets ``self._highest`` to its own index, so a late one (reordered) moves it back; the next
-    report names an older datagram and the sender's controller, computing ``expected`` from
-    it, sees loss where there was none. Fix: take ``_highest``/``_arrival_ms`` only when the
-    index is above the highest so far (the opener's ``window.highest`` after ``open``)."""
+    BUG (protocol/media_path.py, ReceiverMediaPath.read: ``self._highest, self._arrival_ms =
+    index, now_ms``, line 491 at 4be004d): every accepted datagram sets ``_highest`` to its own
+    index, so a late one (reordered) moves it back; the next report names an older datagram
+    and the sender's controller, computing ``expected`` from it, sees loss where there was
+    none (the next test). Fix: take ``_highest`` and ``_arrival_ms`` only when the index is the
+    highest so far (``index == self._opener.window.highest`` after ``open``)."""
     call.open()
     call.step(0.3)  # a report went; the next one comes after 0.25 s
     call.hold_to_receiver(True)
@@ -539,7 +540,7 @@ def test_report_names_the_highest_index_after_reordering(call: Call) -> None:
 def test_reordering_alone_does_not_cut_the_rate(open_call: Call) -> None:
     """The consequence of the bug above: one datagram late by one place, nothing lost, and
     the report after next tells the sender a quarter of its datagrams were lost; the rate is
-    cut. Fails until ReceiverMediaPath.read keeps the highest index (media_path.py:491)."""
+    cut. Fails until ReceiverMediaPath.read keeps the highest index."""
     call = open_call
     peer = call.sender.live(call.t)[0]
     for late in (True, False):
