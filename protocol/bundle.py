@@ -80,7 +80,7 @@ def unpack(bundle: bytes) -> Iterator[bytes]:
             shift += 7
             if not byte & 0x80:
                 break
-            if shift > 21:
+            if shift >= 21:
                 raise BundleError("element length longer than 3 bytes")
         if length == 0:
             raise BundleError("empty element")

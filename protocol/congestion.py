@@ -8,9 +8,10 @@ one one-way delay sample, offset by the unknown difference between the two clock
 smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base delay, RFC
 6817); what a sample has above it is queueing.
 
-- Queueing over QUEUE_HIGH_MS, or loss over LOSS_HIGH: the rate falls to DECREASE times what
-  the receiver got over the last report interval (GCC's decrease), at most once per
-  DECREASE_HOLD_S, so one queue is not paid for twice.
+- Queueing over QUEUE_HIGH_MS, or loss over LOSS_HIGH (counted over the last LOSS_WINDOW_S,
+  so one lost datagram among the few of a report interval is not taken for 20%): the rate
+  falls to DECREASE times what the receiver got over the last report interval (GCC's
+  decrease), at most once per DECREASE_HOLD_S, so one queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC), but never past 1.5 times what the receiver got plus a
   little, so a sender that has little to send does not claim a link it never tried.
@@ -31,6 +32,7 @@ logger = logging.getLogger(__name__)
 QUEUE_HIGH_MS = 60.0
 QUEUE_LOW_MS = 20.0
 LOSS_HIGH = 0.10
+LOSS_WINDOW_S = 2.0
 LOSS_LOW = 0.02
 DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
@@ -73,6 +75,7 @@ class RateController:
         self._order: deque[int] = deque()
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
         self._prev: tuple[float, int, int, int] | None = None  # arrival s, highest, rx, bytes
+        self._history: deque[tuple[float, int, int]] = deque()  # arrival s, highest, received
         self._last_decrease = -math.inf
         self._last_update: float | None = None
 
@@ -109,6 +112,15 @@ class RateController:
         got = (received - prev[2]) & 0xFFFFFFFF
         if span <= 0 or expected == 0 or expected > 1 << 20:
             return  # nothing new arrived since the last report (or a report came twice)
+        if not self._history:
+            self._history.append(prev[:3])
+        self._history.append((arrival_s, highest, received))
+        while len(self._history) > 2 and arrival_s - self._history[1][0] >= LOSS_WINDOW_S:
+            self._history.popleft()
+        then = self._history[0]
+        window_expected = (highest - then[1]) & 0xFFFFFFFF
+        window_got = (received - then[2]) & 0xFFFFFFFF
+        window_loss = max(0.0, 1.0 - window_got / window_expected) if window_expected else 0.0
         loss = max(0.0, 1.0 - got / expected)
         self.loss_average += _LOSS_AVERAGE * (loss - self.loss_average)
         if self.loss_average > LOSS_REPEAT_ON:
@@ -116,8 +128,8 @@ class RateController:
         elif self.loss_average < LOSS_REPEAT_OFF:
             self.lossy = False
         received_bps = ((received_bytes - prev[3]) & 0xFFFFFFFF) * 8.0 / span
-        self.last = Estimate(queue_ms, loss, received_bps)
-        self._update(now, queue_ms, loss, received_bps)
+        self.last = Estimate(queue_ms, window_loss, received_bps)
+        self._update(now, queue_ms, window_loss, received_bps)
 
     def _update(self, now: float, queue_ms: float, loss: float, received_bps: float) -> None:
         dt = 0.0 if self._last_update is None else min(1.0, now - self._last_update)

@@ -63,7 +63,9 @@ from protocol.packets import MediaKey
 logger = logging.getLogger(__name__)
 
 #: A path with no authentic datagram for this long is down; the media go by ZeroMQ instead.
-PATH_TIMEOUT_S = 3.0
+#: Shorter than PEER_TIMEOUT_S, so the media are back on PUB before a receiver would give its
+#: peer up (the sender heartbeats at least every second, the receiver reports every 0.25 s).
+PATH_TIMEOUT_S = 1.5
 #: The connecting end's empty datagrams while the path is not open yet, then while it is down.
 HELLO_INTERVAL_S = 0.1
 REPROBE_INTERVAL_S = 2.0
@@ -498,7 +500,8 @@ class ReceiverMediaPath(_Path):
                 continue
             fresh = not self.live(now)
             self._peer, self.last_heard = address, now
-            self._highest, self._arrival_ms = index, now_ms
+            if index == self._opener.window.highest:  # a late one names no newer datagram
+                self._highest, self._arrival_ms = index, now_ms
             self._received += 1
             self._received_bytes += len(data)
             if fresh:

@@ -16,8 +16,9 @@ Run as a script by :class:`netns_pair.TwoHosts`::
 It prints ``ready`` once both devices are up in their namespaces, and relays until SIGTERM or
 until a namespace disappears. Packets are counted and the counts printed at the end.
 
-``--block-udp-after S`` makes it a firewall that closes UDP S seconds after ``ready`` (0: from
-the start): every IPv4 packet of protocol 17 is dropped from then on, TCP still passes.
+``--block-udp-after N`` makes it a firewall that closes UDP once it has relayed N UDP packets
+(0: from the start): every IPv4 packet of protocol 17 is dropped from then on, TCP still
+passes.
 """
 
 from __future__ import annotations
@@ -62,10 +63,10 @@ class Link:
     """Both directions of the emulated link."""
 
     def __init__(
-        self, delay_s: float, jitter_s: float, loss: float, seed: int, block_udp_at: float
+        self, delay_s: float, jitter_s: float, loss: float, seed: int, udp_allowed: float
     ) -> None:
         self.delay_s, self.jitter_s, self.loss = delay_s, jitter_s, loss
-        self.block_udp_at = block_udp_at
+        self.udp_allowed = udp_allowed  # UDP packets let through before the firewall closes
         self.blocked = 0
         self.rng = random.Random(seed)
         self.queue: list[tuple[float, int, int, bytes]] = []  # (due, order, out fd, packet)
@@ -74,9 +75,11 @@ class Link:
         self.dropped = 0
 
     def take(self, packet: bytes, out: int, now: float) -> None:
-        if now >= self.block_udp_at and len(packet) > 9 and packet[0] >> 4 == 4 and packet[9] == 17:
-            self.blocked += 1
-            return
+        if len(packet) > 9 and packet[0] >> 4 == 4 and packet[9] == 17:
+            if self.udp_allowed <= 0:
+                self.blocked += 1
+                return
+            self.udp_allowed -= 1
         if self.rng.random() < self.loss:
             self.dropped += 1
             return
@@ -106,7 +109,7 @@ def main() -> int:
     p.add_argument("--jitter-ms", type=float, default=10.0)
     p.add_argument("--loss", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--block-udp-after", type=float, default=None, metavar="S")
+    p.add_argument("--block-udp-after", type=int, default=None, metavar="N")
     args = p.parse_args()
     stopping = False
 
@@ -120,8 +123,8 @@ def main() -> int:
     configure(args.ns_a, args.dev_a, args.addr_a, args.addr_b)
     configure(args.ns_b, args.dev_b, args.addr_b, args.addr_a)
     block = args.block_udp_after
-    block_at = float("inf") if block is None else time.monotonic() + block
-    link = Link(args.delay_ms / 1000, args.jitter_ms / 1000, args.loss, args.seed, block_at)
+    allowed = float("inf") if block is None else block
+    link = Link(args.delay_ms / 1000, args.jitter_ms / 1000, args.loss, args.seed, allowed)
     other = {fd_a: fd_b, fd_b: fd_a}
     print("ready", flush=True)
     wait: float | None = None

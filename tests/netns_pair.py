@@ -91,10 +91,10 @@ class TwoHosts:
     """
 
     def __init__(
-        self, netem: Netem | None = None, seed: int = 1, block_udp_after: float | None = None
+        self, netem: Netem | None = None, seed: int = 1, block_udp_after: int | None = None
     ) -> None:
-        """``block_udp_after``: a firewall on the link drops UDP from that many seconds on
-        (the user-space link, whatever the kernel has)."""
+        """``block_udp_after``: a firewall on the link drops UDP once that many UDP packets
+        have passed (the user-space link, whatever the kernel has)."""
         n = f"{os.getpid() % 100000}x{next(_count)}"
         self.a, self.b = f"fwa{n}", f"fwb{n}"
         self.netem = netem or Netem()

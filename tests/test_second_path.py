@@ -1,9 +1,9 @@
 """The second path: frame copies over ROUTER/DEALER for a receiver that reports late frames.
 
 It belongs to the media's TCP fallback (a datagram waits behind no retransmission), so these
-endpoints have no UDP media path. Real ZeroMQ sockets on loopback. Where a test needs the copies to come in an order loopback
-would not give by itself, the sender is a hand-made PUB and ROUTER pair that follows the
-joining handshake of docs/protocol.md 3.2.
+endpoints have no UDP media path. Real ZeroMQ sockets on loopback. Where a test needs the
+copies to come in an order loopback would not give by itself, the sender is a hand-made PUB
+and ROUTER pair that follows the joining handshake of docs/protocol.md 3.2.
 """
 
 from __future__ import annotations
