@@ -134,6 +134,9 @@ SNAPSHOT_HWM: Final = 2
 SNAPSHOT_MIN_INTERVAL_S: Final = 0.5
 #: Most peers the snapshot rate limit remembers, and most requests waiting for a first snapshot.
 MAX_SNAPSHOT_PEERS: Final = 256
+#: The same snapshot is sent to the same peer again only after this many times its bare
+#: transfer time at the sender's budget (a request repeated while a reply crosses a thin link).
+SNAPSHOT_TRANSFER_ROOM: Final = 3.0
 #: A joining receiver repeats its SnapshotRequest this often until the snapshot arrives.
 SNAPSHOT_RETRY_MS: Final = 1000
 #: A frame that reaches the receiver this much later than the fastest of the last

@@ -79,6 +79,7 @@ from protocol.constants import (
     SNAPSHOT_HWM,
     SNAPSHOT_MIN_INTERVAL_S,
     SNAPSHOT_RETRY_MS,
+    SNAPSHOT_TRANSFER_ROOM,
     SPARE_PATH_HOLD_S,
     UINT32_MAX,
     UPDATE_HWM,
@@ -453,6 +454,8 @@ class SenderEndpoint(_Endpoint):
         self._snapshot_bytes = b""
         self._waiting: dict[bytes, None] = {}  # identities that asked before a snapshot was set
         self._served_at: dict[bytes, float] = {}  # identity -> time.monotonic() of the last reply
+        self._served_what: dict[bytes, int] = {}  # identity -> the snapshot version it was sent
+        self._snapshot_version = 0
         self._inbox: deque[Packet] = deque()
         self._last_publish = clock()
         self._last_probe_answer = -math.inf
@@ -544,6 +547,7 @@ class SenderEndpoint(_Endpoint):
             raise TypeError(f"expected Snapshot, got {type(snapshot).__name__}")
         self._snapshot = snapshot
         self._snapshot_bytes = bytes(snapshot)
+        self._snapshot_version += 1
         waiting, self._waiting = self._waiting, {}
         for identity in waiting:
             self._serve(identity, time.monotonic())
@@ -747,6 +751,15 @@ class SenderEndpoint(_Endpoint):
         if last is not None and now - last < SNAPSHOT_MIN_INTERVAL_S:
             self._refuse(identity, "asked again within the rate limit")
             return
+        if (
+            last is not None
+            and self._served_what.get(identity) == self._snapshot_version
+            and now - last < self._transfer_s()
+        ):
+            # On a thin link the reply is still on its way: a second copy would only queue
+            # behind it (and in front of the media).
+            self._refuse(identity, "the same snapshot is still on its way")
+            return
         if len(self._served_at) >= MAX_SNAPSHOT_PEERS:
             self._served_at = {
                 peer: t for peer, t in self._served_at.items() if now - t < SNAPSHOT_MIN_INTERVAL_S
@@ -755,6 +768,11 @@ class SenderEndpoint(_Endpoint):
                 self._refuse(identity, "too many peers asking")
                 return
         self._serve(identity, now)
+
+    def _transfer_s(self) -> float:
+        """How long the snapshot may take to reach a receiver at this end's budget (with room
+        for a link slower than the budget: three times the bare time)."""
+        return SNAPSHOT_TRANSFER_ROOM * len(self._snapshot_bytes) * 8 / self.max_bps
 
     def _refuse(self, identity: bytes, reason: str) -> None:
         self.snapshots_refused += 1
@@ -778,6 +796,7 @@ class SenderEndpoint(_Endpoint):
             self._refuse(identity, "peer gone")
             return
         self._served_at[identity] = now
+        self._served_what[identity] = self._snapshot_version
         self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
         self.sizes_sent[CHANNEL_SNAPSHOT][len(self._snapshot_bytes)] += 1
         self.snapshots_served += 1
