@@ -355,6 +355,7 @@ def send(
     from sender.audio import with_sound
     from sender.encoder import FaceEncoder
     from sender.session import restamped, run_sender, start_session, wait_until_ready
+    from sender.snapshot_draft import draft
 
     source = _Source(args)
     try:
@@ -373,7 +374,7 @@ def send(
             **keys,
         )
         try:
-            endpoint.set_snapshot(snapshot)
+            endpoint.set_snapshot(snapshot, draft(snapshot))
             tell(
                 f"sending {source.name} ({width}x{height} at {source.video.fps:g} fps"
                 f"{source.scaled_from}) as session {snapshot.session_id}; waiting for a "

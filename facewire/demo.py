@@ -36,6 +36,7 @@ from sender.lift import MarkerFaceTracker
 from sender.markers import NO_MARKERS
 from sender.rate_cap import GEOMETRY_KBPS
 from sender.session import run_sender, wait_until_ready
+from sender.snapshot_draft import draft
 
 logger = logging.getLogger(__name__)
 
@@ -138,7 +139,7 @@ def _call(
         max_bps=None if args.max_kbps is None else args.max_kbps * 1000,
         fps=video.fps,
     ) as endpoint:
-        endpoint.set_snapshot(snapshot)
+        endpoint.set_snapshot(snapshot, draft(snapshot))
         proc = ctx.Process(
             target=_receiver_main,
             args=(endpoint.ports, str(args.output), verbosity, results, receiver_keys),

@@ -147,6 +147,14 @@ LATE_WINDOW_S: Final = 10.0
 #: path), sent at most every LATE_REPORT_S.
 LATE_FRAMES: Final = "late_frames"
 LATE_REPORT_S: Final = 1.0
+#: ReceiverStats name: the full snapshot after its draft was taken (docs/protocol.md 8.7).
+REFINED: Final = "refined"
+#: The sender serves a draft of its snapshot first when the full one would take longer than
+#: this at its budget, and sends the full one paced behind the media; again every
+#: REFINE_RETRY_S until the receiver says REFINED, at most REFINE_ATTEMPTS times.
+DRAFT_ABOVE_S: Final = 1.0
+REFINE_RETRY_S: Final = 6.0
+REFINE_ATTEMPTS: Final = 3
 #: After a receiver's last report of late frames, the sender keeps sending it a second copy of
 #: every frame packet, over the ROUTER/DEALER connection, for this long.
 SPARE_PATH_HOLD_S: Final = 30.0

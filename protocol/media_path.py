@@ -299,6 +299,11 @@ class SenderMediaPath(_Path):
                         PATH_TIMEOUT_S,
                     )
 
+    def live_for(self, identity: bytes, now: float) -> bool:
+        """Whether the receiver ``identity`` takes datagrams now."""
+        peer = self._by_identity.get(identity)
+        return peer is not None and peer.live(now)
+
     def live(self, now: float) -> list[_Receiver]:
         return [p for p in self._by_key.values() if p.live(now)]
 
@@ -375,6 +380,10 @@ class Bundler:
         self._message = (self._message + 1) % 256
         self._patches.append((self._message, data, 0))
         self.patch_bytes_waiting += len(data)
+
+    def holds(self, data: bytes) -> bool:
+        """Whether ``data`` (handed to :meth:`add_patch`) has not all left yet."""
+        return any(packet is data for _, packet, _ in self._patches)
 
     def end_frame(self, now: float, budget_bps: float) -> list[bytes]:
         """The bundles to send now that a frame is done (none until the k-th frame)."""

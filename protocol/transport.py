@@ -60,6 +60,7 @@ from typing import Self, TypeVar
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
+from protocol.bundle import MAX_REASSEMBLED
 from protocol.channels import COUNTER_MOD
 from protocol.constants import (
     BACK_CHANNEL_HWM,
@@ -68,6 +69,7 @@ from protocol.constants import (
     CHANNEL_SPARE,
     CHANNELS,
     COPY_WINDOW_S,
+    DRAFT_ABOVE_S,
     HEARTBEAT_INTERVAL_S,
     LATE_FRAME_MS,
     LATE_FRAMES,
@@ -76,6 +78,9 @@ from protocol.constants import (
     MAX_SNAPSHOT_PEERS,
     PEER_TIMEOUT_S,
     PROBE_INTERVAL_MS,
+    REFINE_ATTEMPTS,
+    REFINE_RETRY_S,
+    REFINED,
     SNAPSHOT_HWM,
     SNAPSHOT_MIN_INTERVAL_S,
     SNAPSHOT_RETRY_MS,
@@ -456,6 +461,10 @@ class SenderEndpoint(_Endpoint):
         self._served_at: dict[bytes, float] = {}  # identity -> time.monotonic() of the last reply
         self._served_what: dict[bytes, int] = {}  # identity -> the snapshot version it was sent
         self._snapshot_version = 0
+        self._draft_bytes = b""
+        # identity -> (when the full snapshot may go (again), attempts left) after a draft
+        self._refine: dict[bytes, tuple[float, int]] = {}
+        self.refinements_sent = 0
         self._inbox: deque[Packet] = deque()
         self._last_publish = clock()
         self._last_probe_answer = -math.inf
@@ -537,16 +546,25 @@ class SenderEndpoint(_Endpoint):
         self._media.read(now)
         self._media.service(now)
         self._bundler.redundant = any(p.controller.lossy for p in self._media.live(now))
+        if self._refine:
+            self._send_refinements(now)
         for bundle in self._bundler.end_frame(now, self.budget_bps()):
             self._media.send(bundle, now)
 
-    def set_snapshot(self, snapshot: Snapshot) -> None:
-        """Make ``snapshot`` the one served to (re)joining receivers; answers waiting requests."""
+    def set_snapshot(self, snapshot: Snapshot, draft: Snapshot | None = None) -> None:
+        """Make ``snapshot`` the one served to (re)joining receivers; answers waiting requests.
+
+        ``draft``: its first, small version (sender/snapshot_draft.py), served instead where the
+        full one would take more than DRAFT_ABOVE_S at the budget; the full one then follows
+        paced behind the media (docs/protocol.md 8.7).
+        """
         self._check_open()
         if not isinstance(snapshot, Snapshot):
             raise TypeError(f"expected Snapshot, got {type(snapshot).__name__}")
         self._snapshot = snapshot
         self._snapshot_bytes = bytes(snapshot)
+        self._draft_bytes = b"" if draft is None else bytes(draft)
+        self._refine.clear()
         self._snapshot_version += 1
         waiting, self._waiting = self._waiting, {}
         for identity in waiting:
@@ -721,6 +739,10 @@ class SenderEndpoint(_Endpoint):
             if isinstance(packet, ReceiverStats) and packet.values.get("left"):
                 if self._media is not None:
                     self._media.forget(identity)
+            if isinstance(packet, ReceiverStats) and (
+                packet.values.get(REFINED) or packet.values.get("left")
+            ):
+                self._refine.pop(identity, None)
             if isinstance(packet, ReceiverStats) and packet.values.get(LATE_FRAMES, 0) > 0:
                 self._open_spare(identity)
         else:
@@ -785,8 +807,13 @@ class SenderEndpoint(_Endpoint):
                 data = bytes(key)
                 self._router.send_multipart([identity, data], zmq.NOBLOCK)
                 self._accept_sent(key, data)
+            reply = self._snapshot_bytes
+            bare_s = self._transfer_s() / SNAPSHOT_TRANSFER_ROOM
+            if self._draft_bytes and self._media is not None and bare_s > DRAFT_ABOVE_S:
+                reply = self._draft_bytes
+                self._refine[identity] = (now, REFINE_ATTEMPTS)
             # Never blocks: a peer that left SNAPSHOT_HWM replies unread gets no more.
-            self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK, copy=False)
+            self._router.send_multipart([identity, reply], zmq.NOBLOCK, copy=False)
         except zmq.Again:
             self._refuse(identity, "earlier replies still unread")
             return
@@ -797,10 +824,46 @@ class SenderEndpoint(_Endpoint):
             return
         self._served_at[identity] = now
         self._served_what[identity] = self._snapshot_version
-        self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
-        self.sizes_sent[CHANNEL_SNAPSHOT][len(self._snapshot_bytes)] += 1
+        self.bytes_sent[CHANNEL_SNAPSHOT] += len(reply)
+        self.sizes_sent[CHANNEL_SNAPSHOT][len(reply)] += 1
         self.snapshots_served += 1
-        logger.info("served the snapshot (%d bytes)", len(self._snapshot_bytes))
+        draft = " (its draft)" if reply is self._draft_bytes else ""
+        logger.info("served the snapshot%s (%d bytes)", draft, len(reply))
+
+    def _send_refinements(self, now: float) -> None:
+        """The full snapshot to the receivers served its draft: paced in the datagrams where
+        their path is live (again every REFINE_RETRY_S until they say they took it), else at
+        once on the ROUTER connection."""
+        assert self._media is not None
+        if self._bundler.holds(self._snapshot_bytes):
+            # A copy is still leaving (it goes to every live receiver): a retry counts from
+            # when it has gone.
+            retry = now + REFINE_RETRY_S
+            self._refine = {i: (max(due, retry), left) for i, (due, left) in self._refine.items()}
+            return
+        queued = False
+        for identity, (due, left) in list(self._refine.items()):
+            if now < due:
+                continue
+            if left <= 0:
+                del self._refine[identity]
+                logger.info("the full snapshot was not confirmed: the receiver keeps its draft")
+                continue
+            if self._media.live_for(identity, now) and len(self._snapshot_bytes) <= MAX_REASSEMBLED:
+                if not queued:
+                    self._bundler.add_patch(self._snapshot_bytes)
+                    queued = True
+                self._refine[identity] = (now + REFINE_RETRY_S, left - 1)
+            elif not self._media.live_for(identity, now) and now - due < REFINE_RETRY_S:
+                continue  # the path opens once the receiver has built its decoder
+            else:
+                del self._refine[identity]
+                try:
+                    self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK)
+                except zmq.ZMQError:
+                    continue
+            self.refinements_sent += 1
+            self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
 
 
 class ReceiverEndpoint(_Endpoint):

@@ -37,6 +37,7 @@ from models.rig import Rig, load_rig
 from models.surround import SurroundWarp
 from models.wires import WireDeformer
 from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
+from protocol.constants import MAX_IMAGE_SIDE
 from protocol.images import ImageError, decode_image
 from protocol.packets import DeltaFrame, KeyFrame, PacketError, RemPatch, Snapshot
 from protocol.quant import dequantise
@@ -71,6 +72,19 @@ def _image(data: bytes, what: str, fallback_size: tuple[int, int]) -> np.ndarray
         return decode_image(data, f"snapshot {what}")
     except ImageError as exc:
         raise SnapshotError(str(exc)) from None
+
+
+def _images(snapshot: Snapshot) -> tuple[np.ndarray, np.ndarray]:
+    """The snapshot's texture and background, at the sizes the session draws them: a draft's
+    smaller images are scaled up (docs/protocol.md 8.7)."""
+    texture = _image(snapshot.texture, "texture", (MISSING_TEXTURE_SIZE, MISSING_TEXTURE_SIZE))
+    side = snapshot.meta.get("texture_size")
+    if isinstance(side, int) and 0 < side <= MAX_IMAGE_SIDE and texture.shape[:2] != (side, side):
+        texture = cv2.resize(texture, (side, side), interpolation=cv2.INTER_LINEAR)
+    background = _image(snapshot.background, "background", (snapshot.height, snapshot.width))
+    if background.shape[:2] != (snapshot.height, snapshot.width):
+        background = cv2.resize(background, (snapshot.width, snapshot.height))
+    return texture, background
 
 
 class FaceDecoder:
@@ -110,14 +124,8 @@ class FaceDecoder:
         self.wires = WireDeformer.from_rig(vertices, self.rig)
         self.mouth = MouthOpening(self.mesh, self.rig)
         self._rest = self.wires.rest_params()
-        self.texture = _image(
-            snapshot.texture, "texture", (MISSING_TEXTURE_SIZE, MISSING_TEXTURE_SIZE)
-        )
-        self.background = _image(
-            snapshot.background, "background", (snapshot.height, snapshot.width)
-        )
-        if self.background.shape[:2] != (snapshot.height, snapshot.width):
-            self.background = cv2.resize(self.background, (snapshot.width, snapshot.height))
+        self._snapshot = snapshot
+        self.texture, self.background = _images(snapshot)
         reference = FrameValues(
             snapshot.seq,
             0,
@@ -148,11 +156,41 @@ class FaceDecoder:
         # Where the snapshot frame showed the face outline: the surroundings of the head are
         # carried from there to wherever the face is drawn.
         self._outline = self.mesh.outline
+        self._outline_at_snapshot = at_snapshot[self._outline]
         self.surround = SurroundWarp(
-            self.background, at_snapshot[self._outline], person_mask(self.background)
+            self.background, self._outline_at_snapshot, person_mask(self.background)
         )
         # The first draw compiles shaders and uploads the texture: do it before frames arrive.
         self.renderer.render(self._drawn(at_snapshot))
+
+    def refine(self, snapshot: Snapshot) -> bool:
+        """Take the sharper images of the full snapshot that follows a draft (the sender's
+        first, small version of it on a thin link); False, and nothing changed, when
+        ``snapshot`` is not this session's snapshot with other images."""
+        mine = self._snapshot
+        if (
+            snapshot.session_id != mine.session_id
+            or snapshot.seq != mine.seq
+            or (snapshot.width, snapshot.height) != (mine.width, mine.height)
+            or not np.array_equal(snapshot.vertices, mine.vertices)
+            or list(snapshot.channels) != list(mine.channels)
+            or [list(r) for r in snapshot.reference] != [list(r) for r in mine.reference]
+            or snapshot.meta.get("texture_size") != mine.meta.get("texture_size")
+        ):
+            return False
+        try:
+            texture, background = _images(snapshot)
+        except SnapshotError as exc:
+            logger.info("refinement of the snapshot not taken: %s", exc)
+            return False
+        if texture.shape != self.texture.shape:
+            return False
+        self._snapshot, self.texture, self.background = snapshot, texture, background
+        if self.rem is not None:
+            self.rem.rebase(texture)
+        self.renderer.set_texture(self.texture if self.rem is None else self.rem.texture)
+        self.surround = SurroundWarp(background, self._outline_at_snapshot, person_mask(background))
+        return True
 
     def _rem(self, snapshot: Snapshot) -> RemMerger | None:
         """The REM merger of a snapshot whose meta names a patch grid ("rem_patch_size"),

@@ -79,17 +79,7 @@ class RemMerger:
         self.layout = layout
         self.first_seq = first_seq
         self.adapt_colour = adapt_colour
-        self.base = texture.copy()
-        self._base_hsv = to_hsv(texture)
-        eyes = [n for n in layout.names if n in EYES] or list(layout.names)
-        pixels = np.concatenate(
-            [
-                self._base_hsv[layout.boxes[n].texture_slices][layout.boxes[n].texture_inside]
-                for n in eyes
-            ]
-        )
-        #: The snapshot texture's reference colour (None: no skin in its regions to measure).
-        self.model_colour = reference_colour(pixels[:, None, :])
+        self._take_base(texture)
         #: The video's reference colour the texture is adapted to (None: not adapted).
         self.colour: ColourStats | None = None
         self._adapted = self.base
@@ -103,6 +93,31 @@ class RemMerger:
         self.received = 0
         self.applied: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
+
+    def _take_base(self, texture: np.ndarray) -> None:
+        self.base = texture.copy()
+        self._base_hsv = to_hsv(texture)
+        layout = self.layout
+        eyes = [n for n in layout.names if n in EYES] or list(layout.names)
+        pixels = np.concatenate(
+            [
+                self._base_hsv[layout.boxes[n].texture_slices][layout.boxes[n].texture_inside]
+                for n in eyes
+            ]
+        )
+        #: The snapshot texture's reference colour (None: no skin in its regions to measure).
+        self.model_colour = reference_colour(pixels[:, None, :])
+
+    def rebase(self, texture: np.ndarray) -> None:
+        """A sharper snapshot texture of the same size (the full snapshot after its draft):
+        the patches held and shown stay, the colour adaptation is made again on it."""
+        if texture.shape != self.base.shape or texture.dtype != np.uint8:
+            raise ValueError(f"expected a {self.base.shape} uint8 texture, got {texture.shape}")
+        self._take_base(texture)
+        self._adapted = self.base
+        if self.colour is not None and self.adapt_colour and self.model_colour is not None:
+            self._adapted = adapt(self._base_hsv, self.model_colour, self.colour)
+        self._compose()
 
     def add(self, packet: RemPatch) -> bool:
         """Take a patch for later (:meth:`due`); False, counted in :attr:`dropped`, if it

@@ -20,6 +20,7 @@ import numpy as np
 
 from protocol.channels import ChainBroken, FrameValues
 from protocol.clock import now_us
+from protocol.constants import REFINED
 from protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.audio import CallSound
@@ -87,6 +88,7 @@ class ReceiverReport:
     # The media path (protocol/media_path.py): datagrams and their bytes on the wire each way,
     # those dropped by why, updates that came by both paths.
     media: dict[str, Any] = field(default_factory=dict)
+    refined: int = 0  # full snapshots taken after their draft
 
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
@@ -117,6 +119,7 @@ class ReceiverReport:
             "rem": dict(self.rem),
             "second_path": dict(self.second_path),
             "media": dict(self.media),
+            "refined": self.refined,
             "playout": {
                 "mode": self.playout,
                 "display_fps": self.display_fps,
@@ -372,6 +375,11 @@ def _receive_session(
                         audio.push(packet, now_us())
                     if decoder.offer(packet):  # a REM patch, drawn with its frame
                         pass
+                    elif isinstance(packet, Snapshot):  # the full one after its draft
+                        if decoder.refine(packet):
+                            report.refined += 1
+                            endpoint.send_stats({REFINED: 1.0})
+                            logger.info("the snapshot's full images came: drawn from now on")
                     elif isinstance(packet, (KeyFrame, DeltaFrame)):
                         values = _decode(decoder, packet, report)
                         if values is None:

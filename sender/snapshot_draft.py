@@ -1,0 +1,70 @@
+"""A first, small version of the snapshot, for a thin link: the picture starts sooner.
+
+The draft is the snapshot itself with its two images made smaller: half their sides (a quarter
+for a large frame) and a low WebP quality, lowered until each fits in half of ``image_bytes``
+(or the smallest setting is reached). Everything the receiver
+decodes frames with (mesh, channel table, reference values, rig) is the same, so the full
+snapshot that follows only brings sharper images (docs/protocol.md, 8.7: the receiver swaps
+them in). ``meta["texture_size"]`` keeps the full texture's side: the receiver scales the
+draft's texture up to it, so REM patches land where they will in the full one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import logging
+
+import cv2
+import numpy as np
+
+from protocol.images import decode_image
+from protocol.packets import Snapshot
+
+logger = logging.getLogger(__name__)
+
+#: Divisors of the sides and WebP qualities tried for the draft's images, best first.
+SCALES = (2, 4)
+QUALITIES = (30, 15, 5)
+#: The draft's images together take at most this many bytes (each image gets half). At
+#: 176x144 this keeps the draft near 4 KB: two seconds of a 24 kbit/s link with the join.
+IMAGE_BYTES = 900
+DRAFT_META = "draft"
+
+
+def _smaller(image: np.ndarray, scale: int, quality: int) -> bytes:
+    height, width = image.shape[:2]
+    size = (max(8, width // scale), max(8, height // scale))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    ok, data = cv2.imencode(".webp", small, [cv2.IMWRITE_WEBP_QUALITY, quality])
+    if not ok:
+        raise ValueError("OpenCV could not encode WebP")
+    return data.tobytes()
+
+
+def draft(snapshot: Snapshot, image_bytes: int = IMAGE_BYTES) -> Snapshot | None:
+    """The draft of ``snapshot``, or None when the draft would not be smaller."""
+    images = []
+    for name in ("texture", "background"):
+        data = getattr(snapshot, name)
+        if not data:
+            images.append(data)
+            continue
+        image = decode_image(data, f"snapshot {name}")
+        for scale, quality in itertools.product(SCALES, QUALITIES):
+            small = _smaller(image, scale, quality)
+            if len(small) <= image_bytes // 2:
+                break
+        images.append(small)
+    meta = {**snapshot.meta, DRAFT_META: 1}
+    out = dataclasses.replace(snapshot, texture=images[0], background=images[1], meta=meta)
+    saved = len(snapshot.texture) + len(snapshot.background) - len(images[0]) - len(images[1])
+    if saved <= 0:
+        return None
+    logger.info("snapshot draft: images %d bytes instead of %d", sum(map(len, images)),
+                sum(map(len, images)) + saved)  # fmt: skip
+    return out
+
+
+def is_draft(snapshot: Snapshot) -> bool:
+    return bool(snapshot.meta.get(DRAFT_META))

@@ -1,0 +1,102 @@
+"""The progressive snapshot: a small draft first, its full images paced in behind the media.
+
+The call below runs at 176x144 (the bundled clip scaled down), the size of a thin link's call:
+its full snapshot (about 10 KB) comes paced in about 4 s at the default budget.
+
+sender/snapshot_draft.py makes the draft; the receiver's decoder swaps in the full snapshot's
+images when it comes (FaceDecoder.refine) and refuses one that is not its session's. A call
+through the commands on loopback shows the draft's blur first, then the full picture.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from cli_call import Facewire, all_end_well, free_ports
+
+from protocol.images import decode_image
+from protocol.packets import Snapshot
+from sender.capture import VideoSource, demo_clip_path
+from sender.encoder import FaceEncoder
+from sender.session import start_session
+from sender.snapshot_draft import draft, is_draft
+
+
+@pytest.fixture(scope="module")
+def snapshot() -> Snapshot:
+    video = VideoSource(demo_clip_path(), realtime=False)
+    encoder = FaceEncoder(video.width, video.height, video.fps)
+    snap, _ = start_session(encoder, video.frames(), 30, "the bundled clip")
+    video.close()
+    return snap
+
+
+def test_the_draft_is_the_snapshot_with_smaller_images(snapshot: Snapshot) -> None:
+    small = draft(snapshot)
+    assert small is not None and is_draft(small) and not is_draft(snapshot)
+    assert len(bytes(small)) < len(bytes(snapshot)) / 3
+    # At 640x480 even a quarter of the sides at the lowest quality takes more than 900 bytes.
+    assert len(small.texture) + len(small.background) < 2_000
+    for name in ("session_id", "seq", "width", "height", "channels", "reference", "rig_hash"):
+        assert getattr(small, name) == getattr(snapshot, name), name
+    assert np.array_equal(small.vertices, snapshot.vertices)
+    # Half or a quarter of the sides (640x480 needs a quarter): the receiver scales them up.
+    full = decode_image(snapshot.background, "full")
+    shrunk = decode_image(small.background, "draft")
+    assert shrunk.shape[:2] == (full.shape[0] // 4, full.shape[1] // 4)
+
+
+def test_the_decoder_takes_the_full_images_and_refuses_others(snapshot: Snapshot) -> None:
+    from receiver.decoder import FaceDecoder
+
+    small = draft(snapshot)
+    assert small is not None
+    decoder = FaceDecoder(small)
+    try:
+        blurred = decoder.background.copy()
+        other = dataclasses.replace(snapshot, session_id=snapshot.session_id + 1)
+        moved = dataclasses.replace(snapshot, vertices=snapshot.vertices * 1.01)
+        assert not decoder.refine(other) and not decoder.refine(moved)
+        assert np.array_equal(decoder.background, blurred)
+        assert decoder.refine(snapshot)
+        full = decode_image(snapshot.background, "full")
+        assert np.array_equal(decoder.background, full)
+        assert decoder.texture.shape[0] == snapshot.meta["texture_size"]
+    finally:
+        decoder.close()
+
+
+def _sharpness(image: np.ndarray) -> float:
+    return float(cv2.Laplacian(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), cv2.CV_64F).var())
+
+
+def test_a_call_starts_on_the_draft_and_ends_sharp(tmp_path: Path) -> None:
+    port = free_ports(2)
+    record, stats = tmp_path / "call.mp4", tmp_path / "stats.json"
+    receiver = Facewire(
+        "receive", "--bind", f"tcp://127.0.0.1:{port}", "--plain", "--once",
+        "--record", str(record), "--stats", str(stats),
+    )  # fmt: skip
+    sender = Facewire(
+        "send", "--connect", f"tcp://127.0.0.1:{port}", "--plain", "--frames", "240",
+        "--no-sound", "--max-size", "176x144",
+    )  # fmt: skip
+    all_end_well(sender, receiver)
+    report = json.loads(stats.read_text())
+    assert report["refined"] == 1, report
+    video = cv2.VideoCapture(str(record))
+    frames = []
+    while True:
+        ok, frame = video.read()
+        if not ok:
+            break
+        frames.append(frame)
+    video.release()
+    first, last = _sharpness(frames[5]), _sharpness(frames[-5])
+    print(f"sharpness: frame 5 {first:.0f}, frame {len(frames) - 5} {last:.0f}")
+    assert last > 2 * first
