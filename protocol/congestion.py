@@ -13,8 +13,11 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
   falls to DECREASE times what the receiver got over the last report interval (GCC's
   decrease), at most once per DECREASE_HOLD_S, so one queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
-  (multiplicatively, as GCC), but never past 1.5 times what the receiver got plus a
-  little, so a sender that has little to send does not claim a link it never tried.
+  (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
+  accelerated ramp-up), but never past 1.5 times what the receiver got plus a little, so a
+  sender that has little to send does not claim a link it never tried. It starts low
+  (START_RATE_BPS: the face and a little more), so the first burst of patches or of the full
+  snapshot cannot flood a thin link before the first reports come back.
 - In between: held.
 
 :class:`RateController` is pure: the transport feeds it reports and sends, and reads ``rate_bps``.
@@ -29,7 +32,7 @@ from dataclasses import dataclass
 
 logger = logging.getLogger(__name__)
 
-QUEUE_HIGH_MS = 60.0
+QUEUE_HIGH_MS = 40.0
 QUEUE_LOW_MS = 20.0
 LOSS_HIGH = 0.10
 LOSS_WINDOW_S = 2.0
@@ -37,13 +40,13 @@ LOSS_LOW = 0.02
 DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
 INCREASE = 0.08  # a second, multiplicative
+STARTUP_INCREASE = 0.25
 BASE_WINDOW_S = 30.0
 #: The rate never falls below this: the face's own geometry and the headers of a datagram every
 #: 100 ms fit in it.
 MIN_RATE_BPS = 6_000.0
-#: Where the estimate starts before any report: the call's default budget (its face and the
-#: sound fit in it).
-START_RATE_BPS = 64_000.0
+#: Where the estimate starts before any report: a little more than the face alone costs.
+START_RATE_BPS = 16_000.0
 #: Loss (a slow average of the reports') over which the sender repeats each datagram's updates
 #: in the next one, and under which it stops.
 LOSS_REPEAT_ON = 0.01
@@ -146,5 +149,6 @@ class RateController:
             return
         if queue_ms < QUEUE_LOW_MS and loss < LOSS_LOW:
             ceiling = 1.5 * received_bps + 10_000.0
-            grown = self.rate_bps * (1.0 + INCREASE * dt)
+            increase = INCREASE if self.decreases else STARTUP_INCREASE
+            grown = self.rate_bps * (1.0 + increase * dt)
             self.rate_bps = max(self.rate_bps, min(grown, ceiling))

@@ -13,6 +13,7 @@ from protocol.congestion import (
     DECREASE,
     DECREASE_HOLD_S,
     MIN_RATE_BPS,
+    QUEUE_HIGH_MS,
     START_RATE_BPS,
     RateController,
 )
@@ -101,8 +102,8 @@ def every_fifth(n: int) -> bool:
 SCENARIOS: list[dict[str, Any]] = [{}, {"delay": growing_queue(since=2)}, {"lost": every_fifth}]
 
 
-def test_starts_at_the_default_budget() -> None:
-    assert RateController().rate_bps == START_RATE_BPS == 64_000
+def test_starts_low_a_little_above_the_face() -> None:
+    assert RateController().rate_bps == START_RATE_BPS == 16_000
 
 
 def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
@@ -114,8 +115,8 @@ def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
     assert all(s.queue_ms == pytest.approx(0, abs=1) and s.loss == 0 for s in steps)
     rates = [s.rate_bps for s in steps]
     assert rates == sorted(rates)  # never falls
-    after_5s = next(s.rate_bps for s in steps if s.now >= T0 + 5)
-    assert 20_000 * 1.3 < after_5s < 20_000 * 1.6  # about 8% a second
+    after_2s = next(s.rate_bps for s in steps if s.now >= T0 + 2)
+    assert 20_000 * 1.5 < after_2s < 20_000 * 1.75  # about 25% a second before any decrease
     assert max(rates) <= 1.5 * max(s.received_bps for s in steps) + 10_000 + 1e-6
     assert rates[-1] == pytest.approx(ceiling, rel=0.02)
     assert controller.decreases == 0
@@ -123,15 +124,15 @@ def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
 
 def test_not_raised_past_what_was_received() -> None:
     """A sender with little to send does not claim a link it never tried."""
-    controller = RateController()  # 64 kbit/s, above 1.5 x 24 + 10
+    controller = RateController(start_bps=64_000)  # above 1.5 x 24 + 10
     simulate(controller, 20)
-    assert controller.rate_bps == START_RATE_BPS
+    assert controller.rate_bps == 64_000
 
 
 def test_growing_queue_brings_the_rate_down() -> None:
-    controller = RateController()
+    controller = RateController(start_bps=64_000)
     steps = simulate(controller, 12, delay=growing_queue(since=4))
-    first = next(i for i, s in enumerate(steps) if s.queue_ms > 60)
+    first = next(i for i, s in enumerate(steps) if s.queue_ms > QUEUE_HIGH_MS)
     assert all(s.decreases == 0 for s in steps[:first])
     cut = steps[first]
     assert cut.decreases == 1
@@ -143,11 +144,11 @@ def test_growing_queue_brings_the_rate_down() -> None:
 
 
 def test_queue_under_the_high_mark_holds_the_rate() -> None:
-    """40 ms of queue, between 20 and 60: neither up nor down."""
+    """30 ms of queue, between 20 and 40: neither up nor down."""
     controller = RateController()
-    steps = simulate(controller, 10, delay=lambda t: 0.05 if t < T0 + 3 else 0.09)
+    steps = simulate(controller, 10, delay=lambda t: 0.05 if t < T0 + 3 else 0.08)
     held = [s for s in steps if s.now > T0 + 3.5]
-    assert all(s.queue_ms == pytest.approx(40, abs=2) for s in held)
+    assert all(s.queue_ms == pytest.approx(30, abs=2) for s in held)
     assert {s.rate_bps for s in held} == {held[0].rate_bps}
     assert controller.decreases == 0
 
