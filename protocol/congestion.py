@@ -8,9 +8,10 @@ one one-way delay sample, offset by the unknown difference between the two clock
 smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base delay, RFC
 6817); what a sample has above it is queueing.
 
-- Queueing over QUEUE_HIGH_MS, or loss over LOSS_HIGH (counted over the last LOSS_WINDOW_S,
-  so one lost datagram among the few of a report interval is not taken for 20%): the rate
-  falls to DECREASE times what the receiver got over the last report interval (GCC's
+- Queueing over QUEUE_HIGH_MS, or loss over LOSS_HIGH with some queue (over QUEUE_LOW_MS:
+  a full queue drops; loss on a link with no queue is the link's own, which sending less does
+  not cure; loss counted over the last LOSS_WINDOW_S, so one lost datagram among the few of a
+  report interval is not taken for 20%): the rate falls to DECREASE times what the receiver got over the last report interval (GCC's
   decrease), at most once per DECREASE_HOLD_S, so one queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
@@ -137,7 +138,7 @@ class RateController:
     def _update(self, now: float, queue_ms: float, loss: float, received_bps: float) -> None:
         dt = 0.0 if self._last_update is None else min(1.0, now - self._last_update)
         self._last_update = now
-        if queue_ms > QUEUE_HIGH_MS or loss > LOSS_HIGH:
+        if queue_ms > QUEUE_HIGH_MS or (loss > LOSS_HIGH and queue_ms > QUEUE_LOW_MS):
             if now - self._last_decrease >= DECREASE_HOLD_S:
                 self._last_decrease = now
                 self.decreases += 1

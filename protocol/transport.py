@@ -617,9 +617,10 @@ class SenderEndpoint(_Endpoint):
             self._bundler.add_patch(data)
         else:
             self._bundler.add(data)
-        if isinstance(packet, Bye) or not self._paced:
-            # The last datagram leaves at once; so does every update of a caller that does not
-            # mark its frames' ends (end_frame), which bundles nothing.
+        if isinstance(packet, (Bye, KeyFrame)) or not self._paced:
+            # The last datagram leaves at once, and a keyframe (after a loss the receiver's
+            # picture waits for it); so does every update of a caller that does not mark its
+            # frames' ends (end_frame), which bundles nothing.
             for bundle in self._bundler.flush(now, math.inf):
                 self._media.send(bundle, now)
 

@@ -2,11 +2,12 @@
 with their own addresses, the link between them delayed, jittered and lossy like
 ``tc netem delay 40ms 10ms loss 5%`` in each direction (tests/netns_pair.py).
 
-ZeroMQ runs over TCP: a lost packet is retransmitted, so the receiver sees late frames, never
-missing ones. The receiver must still rebuild every frame (frame i of the recording against
-frame i of the input), never freeze longer than a keyframe interval, and the latency must
-show the link's delay without piling up. Skipped, with the reason, where namespaces cannot be
-made (not root, no ``ip``).
+The media cross as datagrams (docs/protocol.md 8): a lost one is not sent again, but once the
+receiver's reports show the loss, every datagram carries the last one's updates too, so a
+single loss costs nothing. The receiver must still rebuild every frame (frame i of the
+recording against frame i of the input), never freeze longer than the issue allows (200 ms),
+and the latency must show the link's delay without piling up. Skipped, with the reason,
+where namespaces cannot be made (not root, no ``ip``).
 
 The receiver's live view, as the README sets it up (``--view 0.0.0.0:8080``), is opened by a
 headless Chromium in the receiver's namespace and its screenshots checked for the face and
@@ -33,9 +34,12 @@ pytestmark = pytest.mark.skipif(REASON is not None, reason=f"no network namespac
 FRAMES = 150
 PORT = 5555
 VIEW_PORT = 8080
-#: No frame may wait this long (a stuck or queueing call): TCP's retransmission of a lost
-#: segment costs at least its 200 ms minimum timeout, plus the 80 ms round trip.
-MAX_LATENCY_MS = 2000.0
+#: No frame may wait this long (a stuck or queueing call).
+MAX_LATENCY_MS = 500.0
+#: The longest a picture may stand still, in frames (200 ms at 30 fps).
+MAX_FREEZE_FRAMES = 6
+#: Frames of the call's start, before its first keyframe has come.
+START_FRAMES = 15
 
 
 def test_call_between_two_namespaces_over_a_lossy_delayed_link(tmp_path: Path) -> None:
@@ -72,13 +76,14 @@ def test_call_between_two_namespaces_over_a_lossy_delayed_link(tmp_path: Path) -
     # The link's delay is in the path (so the call really crossed it), and nothing queued.
     assert latency["p50"] >= netem.delay_ms - netem.jitter_ms, latency
     assert latency["max"] < MAX_LATENCY_MS, latency
-    for _first, length in report["freezes"]:
-        assert length <= report["keyframe_interval"], report["freezes"]
-    # The loss made frames late, so the sender opened the second path; each frame packet was
-    # still decoded once and in order (a copy taken twice would break the chain).
-    print("second path:", report["second_path"])
-    assert report["second_path"]["copies"] > 0, report["second_path"]
-    assert report["chain_breaks"] == 0 and report["keyframe_requests"] == 0, report
+    print("freezes:", report["freezes"], "media:", report["media"])
+    for first, length in report["freezes"]:
+        # (The picture's first frames wait for the keyframe the receiver asks for as it joins.)
+        assert first < START_FRAMES or length <= MAX_FREEZE_FRAMES, report["freezes"]
+    # The repeated updates came, their second copies were dropped, and no second path opened
+    # (a datagram waits behind no retransmission).
+    assert report["media"]["udp"] and report["media"]["duplicates"] > 0, report["media"]
+    assert report["second_path"]["copies"] == 0, report["second_path"]
 
 
 @pytest.mark.skipif(
