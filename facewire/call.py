@@ -217,6 +217,11 @@ def add_budget_argument(p: argparse.ArgumentParser) -> None:
         help="the most this end sends, kbit/s on the wire with every header counted; less when "
         f"the receiver's reports say the link carries less (default {DEFAULT_BUDGET_BPS / 1000:g})",
     )
+    p.add_argument(
+        "--tcp-only",
+        action="store_true",
+        help="send the media over ZeroMQ/TCP, as version 2 did, instead of as datagrams (UDP)",
+    )
 
 
 def add_sound_arguments(p: argparse.ArgumentParser) -> None:
@@ -371,6 +376,7 @@ def send(
             connect=not address.bind,
             max_bps=None if args.max_kbps is None else args.max_kbps * 1000,
             fps=source.video.fps,
+            udp=not args.tcp_only,
             **keys,
         )
         try:

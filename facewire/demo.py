@@ -138,6 +138,7 @@ def _call(
         allowed_keys=[receiver_public],
         max_bps=None if args.max_kbps is None else args.max_kbps * 1000,
         fps=video.fps,
+        udp=not args.tcp_only,
     ) as endpoint:
         endpoint.set_snapshot(snapshot, draft(snapshot))
         proc = ctx.Process(
