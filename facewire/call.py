@@ -141,7 +141,7 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
         "--input", metavar="FILE", help="send a video file (default: the bundled clip)"
     )
     p.add_argument(
-        "--loop", action="store_true", help="play the file again and again (its sound once)"
+        "--loop", action="store_true", help="play the file again and again, its sound too"
     )
     p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
     p.add_argument(
@@ -252,7 +252,8 @@ def sound_as_asked(
     if args.no_sound:
         return None
     settings = AudioSettings(bitrate=round(args.sound_kbps * 1000))
-    return sound_for(source, is_camera, realtime, publish, settings, notify)
+    loop = bool(getattr(args, "loop", False))
+    return sound_for(source, is_camera, realtime, publish, settings, notify, loop)
 
 
 @dataclass

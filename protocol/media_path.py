@@ -276,7 +276,7 @@ class SenderMediaPath(_Path):
 
     def _opened(self, peer: _Receiver, now: float) -> None:
         if not peer.live_told or peer.fallback_told:
-            logger.warning(
+            logger.info(
                 "media: datagrams (UDP) with the receiver at %s:%d", *(peer.address or ("?", 0))
             )
         peer.live_told, peer.fallback_told = True, False
@@ -535,7 +535,7 @@ class ReceiverMediaPath(_Path):
 
     def _opened(self, now: float) -> None:
         if not self._live_told or self._fallback_told:
-            logger.warning("media: datagrams (UDP) from the sender at %s:%d", *self._peer_or())
+            logger.info("media: datagrams (UDP) from the sender at %s:%d", *self._peer_or())
         self._live_told, self._fallback_told = True, False
 
     def _peer_or(self) -> tuple[str, int]:

@@ -208,6 +208,22 @@ class FileTrack:
         self._container.close()
 
 
+class LoopedTrack:
+    """A file's sound again and again, as ``send --loop`` plays its pictures."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.name = str(path)
+        self._path = path
+        self._track = FileTrack(path)
+
+    def read(self, count: int) -> np.ndarray | None:
+        pcm = self._track.read(count)
+        if pcm is None:
+            self._track = FileTrack(self._path)
+            pcm = self._track.read(count)
+        return pcm
+
+
 def open_track(path: str | Path) -> FileTrack | None:
     """The audio track of ``path``, or None (logged) when it has none."""
     try:
@@ -353,12 +369,13 @@ def sound_for(
     publish: Callable[[AudioFrame], None],
     settings: AudioSettings | None = None,
     notify: Callable[[str], None] = logger.info,
+    loop: bool = False,
 ) -> AudioSender | None:
     """The sound to send with a video ``source``, or None with one line to ``notify`` why.
 
     A camera's sound is the default microphone's; a file's, its first audio track (the
-    bundled clip's speech lies beside it). A file read faster than its frame rate has no
-    clock to play sound on: it is sent without.
+    bundled clip's speech lies beside it), again and again with ``loop``. A file read faster
+    than its frame rate has no clock to play sound on: it is sent without.
     """
     track: AudioTrack | None
     try:
@@ -368,12 +385,16 @@ def sound_for(
             notify("no sound: the file is read faster than its frame rate")
             return None
         else:
-            track = open_track(str(source))
-            if track is None and Path(str(source)).name == "demo_clip.mp4":
-                track = open_track(demo_speech_path())
+            path = Path(str(source))
+            track = open_track(path)
+            if track is None and path.name == "demo_clip.mp4":
+                path = demo_speech_path()
+                track = open_track(path)
             if track is None:
                 notify(f"{source} has no audio track: the call goes on without sound")
                 return None
+            if loop:
+                track = LoopedTrack(path)
         return AudioSender(track, publish, settings)
     except AudioError as exc:
         notify(f"{exc}: the call goes on without sound")

@@ -314,3 +314,19 @@ def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: s
     correlation, lag_ms = _voice_match(recorded[spoken], said[spoken])
     print(f"voice correlation {correlation:.2f} at {lag_ms:+.0f} ms")
     assert correlation > 0.9 and abs(lag_ms) <= 20
+
+
+def test_a_looped_file_plays_its_sound_again() -> None:
+    """``send --loop`` sends the file's sound again with its pictures, not once."""
+    from sender.audio import LoopedTrack
+
+    once = open_track(demo_speech_path())
+    assert once is not None
+    first = once.read(10 * AUDIO_RATE)
+    assert first is not None and once.read(AUDIO_FRAME_SAMPLES) is None
+    looped = LoopedTrack(demo_speech_path())
+    read = [looped.read(AUDIO_RATE) for _ in range(25)]
+    assert all(pcm is not None and len(pcm) > 0 for pcm in read)
+    again = np.concatenate([pcm for pcm in read if pcm is not None])
+    assert len(again) >= 2 * len(first)
+    assert np.array_equal(again[len(first) : 2 * len(first)], first)
