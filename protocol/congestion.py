@@ -11,8 +11,9 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
 - Queueing over QUEUE_HIGH_MS, or loss over LOSS_HIGH with some queue (over QUEUE_LOW_MS:
   a full queue drops; loss on a link with no queue is the link's own, which sending less does
   not cure; loss counted over the last LOSS_WINDOW_S, so one lost datagram among the few of a
-  report interval is not taken for 20%): the rate falls to DECREASE times what the receiver got over the last report interval (GCC's
-  decrease), at most once per DECREASE_HOLD_S, so one queue is not paid for twice.
+  report interval is not taken for 20%): the rate falls to DECREASE times what the receiver
+  got over the last report interval (GCC's decrease), at most once per DECREASE_HOLD_S, so
+  one queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
   accelerated ramp-up), but never past 1.5 times what the receiver got plus a little, so a

@@ -70,6 +70,7 @@ from protocol.constants import (
     CHANNELS,
     COPY_WINDOW_S,
     DRAFT_ABOVE_S,
+    FAST_JOIN_BPS,
     HEARTBEAT_INTERVAL_S,
     LATE_FRAME_MS,
     LATE_FRAMES,
@@ -83,6 +84,7 @@ from protocol.constants import (
     REFINED,
     SNAPSHOT_HWM,
     SNAPSHOT_MIN_INTERVAL_S,
+    SNAPSHOT_MS,
     SNAPSHOT_RETRY_MS,
     SNAPSHOT_TRANSFER_ROOM,
     SPARE_PATH_HOLD_S,
@@ -744,6 +746,8 @@ class SenderEndpoint(_Endpoint):
                 packet.values.get(REFINED) or packet.values.get("left")
             ):
                 self._refine.pop(identity, None)
+            if isinstance(packet, ReceiverStats) and identity in self._refine:
+                self._refine_if_fast(identity, packet.values.get(SNAPSHOT_MS))
             if isinstance(packet, ReceiverStats) and packet.values.get(LATE_FRAMES, 0) > 0:
                 self._open_spare(identity)
         else:
@@ -830,6 +834,19 @@ class SenderEndpoint(_Endpoint):
         self.snapshots_served += 1
         draft = " (its draft)" if reply is self._draft_bytes else ""
         logger.info("served the snapshot%s (%d bytes)", draft, len(reply))
+
+    def _refine_if_fast(self, identity: bytes, snapshot_ms: float | None) -> None:
+        """The full snapshot at once on the ROUTER connection to a receiver whose draft came
+        fast (a link of FAST_JOIN_BPS or more: its few kilobytes cannot hold the media up)."""
+        if not snapshot_ms or len(self._draft_bytes) * 8 / (snapshot_ms / 1000) < FAST_JOIN_BPS:
+            return
+        del self._refine[identity]
+        try:
+            self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK)
+        except zmq.ZMQError:
+            return
+        self.refinements_sent += 1
+        self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
 
     def _send_refinements(self, now: float) -> None:
         """The full snapshot to the receivers served its draft: paced in the datagrams where
@@ -943,6 +960,7 @@ class ReceiverEndpoint(_Endpoint):
         self._pub_where = f"{where} {self._pub_address}"
         self._snapshot_where = f"{where} {self._snapshot_address}"
         self.snapshot: Snapshot | None = None
+        self.snapshot_ms = 0.0
         #: The last failed CURVE/ZMTP handshake with the sender, in words (None if none).
         self.handshake_error: str | None = None
         self._sub_dropped = False  # SUB lost its connection since the join began
@@ -1043,6 +1061,7 @@ class ReceiverEndpoint(_Endpoint):
         # 2. Ask for the snapshot (again every SNAPSHOT_RETRY_MS, in case a request was lost
         # or refused by the rate limit); updates keep queueing on SUB meanwhile.
         next_request = 0.0
+        asked = time.monotonic()
         while True:
             now = time.monotonic()
             remaining = _ms(deadline - now)
@@ -1075,6 +1094,9 @@ class ReceiverEndpoint(_Endpoint):
                 self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
                 continue
             self._take_snapshot(packet, data)
+            #: How long the snapshot took to come, ms (from the first request): the sender
+            #: learns from it whether the link is fast (docs/protocol.md 8.7).
+            self.snapshot_ms = (time.monotonic() - asked) * 1000
             logger.info("snapshot: session %d from seq %d", packet.session_id, packet.seq)
             return packet
 
@@ -1253,6 +1275,9 @@ class ReceiverEndpoint(_Endpoint):
             self.stats.duplicates += 1
             return None
         if spare and not isinstance(packet, FRAME_KINDS):
+            if isinstance(packet, Snapshot) and packet.session_id == self.session_id:
+                self._take_snapshot(packet, data)
+                return packet  # the full one after a draft (docs/protocol.md 8.7)
             if isinstance(packet, Snapshot):
                 logger.debug("dropped a snapshot reply that came after the join")
             else:

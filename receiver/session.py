@@ -20,7 +20,7 @@ import numpy as np
 
 from protocol.channels import ChainBroken, FrameValues
 from protocol.clock import now_us
-from protocol.constants import REFINED
+from protocol.constants import REFINED, SNAPSHOT_MS
 from protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.audio import CallSound
@@ -354,7 +354,7 @@ def _receive_session(
         lateness = LateFrames()
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
         # ask for the keyframe that starts our chain.
-        endpoint.send_stats({"ready": 1.0})
+        endpoint.send_stats({"ready": 1.0, SNAPSHOT_MS: endpoint.snapshot_ms})
         endpoint.request_keyframe(snapshot.seq)
         last_request = time.monotonic()
         broken = False  # the chain broke since the last frame decoded

@@ -524,12 +524,15 @@ def test_the_mouths_inside_goes_out_when_the_mouth_opens(
 
 
 def test_the_receive_loop_counts_and_drops_bad_patches(tmp_path) -> None:
-    """A real call of the bundled clip's first 60 frames with its REM patches, and in the
+    """A real call of the bundled clip's first 140 frames with its REM patches, and in the
     middle hostile ones: a region that does not exist, a corrupt image, one far larger than
     its region, a reference to an image never sent, one older than the snapshot. The call
     goes on to the end, each is counted and dropped, and the good ones are applied."""
+    frames_sent = 140
     keys = Keys(tmp_path)
-    encoder, snapshot, frames = start_sender(60)
+    # The hostile patches are kilobytes each: the datagrams pace patches to what the link's
+    # budget leaves (a few kbit/s), so the call goes on 100 frames after them.
+    encoder, snapshot, frames = start_sender(frames_sent)
     assert snapshot.seq == 0
 
     def hostile(frames: Iterator[CapturedFrame]) -> Iterator[CapturedFrame]:
@@ -554,8 +557,8 @@ def test_the_receive_loop_counts_and_drops_bad_patches(tmp_path) -> None:
         endpoint.publish(RemPatch.referring(0, "eye_left", 0, 10.0, 0.5, 0.5))  # seq 0 is fine
         sender = run_sender(endpoint, encoder, hostile(frames))
         report = receiver.report()
-    assert sender.frames_in == 60 and report["ended_by"] == "bye"
-    assert report["frames_out"] == 60
+    assert sender.frames_in == frames_sent and report["ended_by"] == "bye"
+    assert report["frames_out"] == frames_sent
     rem = report["rem"]
     assert rem["dropped"] == {"unknown region": 1, "bad image": 2, "unknown reference": 1}
     assert sum(rem["applied"].values()) == sender.patches + 1 > 1
