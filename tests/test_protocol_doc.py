@@ -284,9 +284,9 @@ def test_worked_example_in_the_doc_is_what_the_code_sends() -> None:
 
 
 def _hex_block(after: str) -> bytes:
-    """The hex bytes of the first fenced block after ``after`` in section 8.7 (comments
+    """The hex bytes of the first fenced block after ``after`` in section 8.8 (comments
     after two spaces dropped)."""
-    section = DOC.read_text().split("### 8.7 Worked example", 1)[1]
+    section = DOC.read_text().split("### 8.8 Worked example", 1)[1]
     block = section.split(after, 1)[1].split("```", 2)[1]
     words = []
     for line in block.strip().splitlines():
