@@ -87,7 +87,7 @@ def test_header_bytes() -> None:
 
 
 def test_known_datagram() -> None:
-    """docs/protocol.md 8.7: a Heartbeat sealed with the secret 0..31, key id 7, index 0x1234."""
+    """docs/protocol.md 8.8: a Heartbeat sealed with the secret 0..31, key id 7, index 0x1234."""
     sealer, opener = pair(key_id=7, start=0x1234)
     bundle = pack([bytes(Heartbeat(3050556106, 42, 1_000_000))])
     datagram = sealer.seal(bundle)
