@@ -7,13 +7,13 @@ Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_wire.py [--input CLIP]... [
 joined by a veth pair, unshaped ("none") or shaped both ways with ``tc tbf`` at each rate
 (burst 1600 bytes, latency 400 ms: facewire/onlink.py says why). The veth's own counters give
 the link's bytes and packets over a steady window of ``--seconds`` that starts 3 s after the
-receiver has its snapshot, and over the whole call. Prints one line per run: the link, kbit/s
-up (sender to receiver) and down, counting IP headers and not Ethernet's, their total,
-packets a second each way, frames shown by the receiver / sent by the sender, the receiver's
-latency (capture to picture; the namespaces share a clock) p50 / p99, and the seconds from
-the sender offering its snapshot to the receiver's first picture. Below each line: the whole
-call (join and Bye included), the qdisc's drops and TCP's resent segments. Needs root;
-prints why and exits 0 otherwise.
+receiver has its snapshot (the full one, where a draft came first), and over the whole call.
+Prints one line per run: the link, kbit/s up (sender to receiver) and down, counting IP
+headers and not Ethernet's, their total, packets a second each way, frames shown by the
+receiver / sent by the sender, the receiver's latency (capture to picture; the namespaces
+share a clock) p50 / p99, and the seconds from the sender offering its snapshot to the
+receiver's first picture. Below each line: the whole call (join and Bye included), the
+qdisc's drops and TCP's resent segments. Needs root; prints why and exits 0 otherwise.
 """
 
 from __future__ import annotations
@@ -76,10 +76,13 @@ def details(r: dict[str, Any]) -> str:
     window = "" if s is None else f"steady {s['seconds']:.1f} s, mean packet "
     if s is not None:
         window += f"{s['up']['mean_packet']:.0f}/{s['down']['mean_packet']:.0f} B; "
+    full = r.get("full_snapshot_s")
     line = (
         f"    {window}whole call {c['seconds']:.1f} s: up {c['up']['ip_bytes']} B in "
         f"{c['up']['packets']} packets, down {c['down']['ip_bytes']} B in {c['down']['packets']}; "
-        f"snapshot in at {_f(r.get('snapshot_s'))} s, frames from {_f(r.get('joined_s'))} s; "
+        f"snapshot in at {_f(r.get('snapshot_s'))} s"
+        + ("" if full is None else f" (the full one after its draft at {full:.1f} s)")
+        + f", frames from {_f(r.get('joined_s'))} s; "
         f"qdisc drops up/down {drops}, TCP resent sender/receiver {resent}"
     )
     sent, got = r["sender"].get("bytes_sent", {}), r["receiver"].get("bytes_received", {})

@@ -31,11 +31,19 @@ directions are read from the sender's end of the pair (its tx is "up", its rx "d
 receiver's end is read too, and over the whole call it must agree.
 
 The figures come in two spans: ``steady``, a window of ``seconds`` that starts ``settle_s``
-after the receiver has its snapshot (joining, the snapshot and the first frames are left
+after the receiver has its whole snapshot (joining, the snapshot and the first frames are left
 out), and ``call``, everything from before the receiver starts to after both have ended
 (joining, the snapshot, the Bye). Beside them: the qdisc's drops (a shaped link), the TCP
 segments each end sent and resent (/proc/net/snmp of each namespace), and both ends' own
 ``--stats``.
+
+"Its whole snapshot": where the sender serves a draft of its snapshot first (over TCP) and
+sends the full one paced in the datagrams behind the media (docs/protocol.md 8), the window
+starts ``settle_s`` after the receiver took the full one, not the draft; it would otherwise
+count several KB of snapshot as the call's steady rate. Both ends run with ``-v`` so that
+their log says when: the sender's "served the snapshot (its draft)", the receiver's "the
+snapshot's full images came". A full snapshot that does not come within REFINE_WAIT_S (a thin
+link) is noted and the window starts anyway.
 """
 
 from __future__ import annotations
@@ -74,6 +82,11 @@ TBF_LATENCY_MS = 400
 #: How long the receiver has to say it listens, and each end to end once told to.
 START_TIMEOUT_S = 60.0
 END_TIMEOUT_S = 30.0
+#: How long the window waits, after the draft, for the receiver to take the full snapshot.
+REFINE_WAIT_S = 20.0
+#: What the ends log (with -v) when a draft is served and when the full snapshot is taken.
+DRAFT_SERVED = "served the snapshot (its draft)"
+FULL_SNAPSHOT_TAKEN = "the snapshot's full images came"
 
 _count = itertools.count(1)
 _REPO = Path(__file__).resolve().parent.parent
@@ -268,6 +281,7 @@ class _Running:
         self.cmd = list(cmd)
         self.lines: list[tuple[float, str]] = []
         self.errors: list[str] = []
+        self.logged: list[tuple[float, str]] = []  # stderr, stamped as it came
         self._new: queue.Queue[tuple[float, str] | None] = queue.Queue()
         self.process = subprocess.Popen(
             self.cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -289,12 +303,17 @@ class _Running:
                 self._new.put(stamped)
             else:
                 self.errors.append(line)
+                self.logged.append((time.monotonic(), line))
         if is_stdout:
             self._new.put(None)
 
     def said(self, text: str) -> float | None:
         """When it first said a line containing ``text`` (None: not yet)."""
         return next((at for at, line in self.lines if text in line), None)
+
+    def logs(self, text: str) -> float | None:
+        """When it first logged (stderr) a line containing ``text`` (None: not yet)."""
+        return next((at for at, line in self.logged if text in line), None)
 
     def running(self) -> bool:
         return self.process.poll() is None
@@ -344,11 +363,15 @@ def _hold(seconds: float, watched: Sequence[_Running]) -> str | None:
 
 
 def _wait_for(
-    process: _Running, text: str, timeout_s: float, watched: Sequence[_Running]
+    process: _Running,
+    text: str,
+    timeout_s: float,
+    watched: Sequence[_Running],
+    logged: bool = False,
 ) -> str | None:
-    """Until ``process`` says ``text``; a problem (None when it did)."""
+    """Until ``process`` says ``text`` (or logs it, ``logged``); a problem (None when it did)."""
     deadline = time.monotonic() + timeout_s
-    while process.said(text) is None:
+    while (process.logs(text) if logged else process.said(text)) is None:
         for other in watched:
             if not other.running():
                 status = other.process.returncode
@@ -357,6 +380,23 @@ def _wait_for(
             return f"{process.name} did not say {text!r} within {timeout_s:g} s"
         time.sleep(0.05)
     return None
+
+
+def _wait_for_full_snapshot(
+    receiver: _Running, sender: _Running, both: Sequence[_Running], say: Callable[[str], None]
+) -> str | None:
+    """Where the sender served a draft, until the receiver has the full snapshot (at most
+    REFINE_WAIT_S); a problem, or None."""
+    if sender.logs(DRAFT_SERVED) is None:
+        return None
+    say("the receiver has the draft snapshot; waiting for the full one")
+    problem = _wait_for(receiver, FULL_SNAPSHOT_TAKEN, REFINE_WAIT_S, both, logged=True)
+    if problem is not None and all(p.running() for p in both):
+        return (
+            f"the receiver did not take the full snapshot within {REFINE_WAIT_S:g} s of its "
+            "draft: the steady window holds its copies"
+        )
+    return problem
 
 
 def _load(path: Path) -> dict[str, Any]:
@@ -377,6 +417,8 @@ def _timeline(
     ``picture_s``: the receiver's first picture (its stats' ``first_frame_s``, counted from
     its own "waiting for a sender"). ``first_picture_s``: offered to first picture, what
     joining costs on this link (connecting, the snapshot, the renderer, the first frame).
+    ``full_snapshot_s``: the receiver took the full snapshot after its draft (None: no draft
+    was served, or the full one did not come).
     """
 
     def since(at: float | None) -> float | None:
@@ -391,6 +433,7 @@ def _timeline(
         "snapshot_s": since(receiver.said("session ")),
         "joined_s": since(sender.said("a receiver joined") if sender is not None else None),
         "picture_s": since(picture),
+        "full_snapshot_s": since(receiver.logs(FULL_SNAPSHOT_TAKEN)),
         "first_picture_s": None if picture is None or offered is None else picture - offered,
     }
 
@@ -413,9 +456,10 @@ def measure_call(
 
     ``clip``: the sender's ``--input`` (None: the bundled clip), played with ``--loop``;
     ``seconds``: the steady window, which starts ``settle_s`` after the receiver has the
-    snapshot (its ``session ...`` line); ``rate_kbit``: tbf on both ends (None: unshaped);
-    ``sound``: leave out ``--no-sound``. The receiver runs ``--once`` with CURVE keys made
-    for the call (``encrypted=False``: both ends ``--plain``). The sender is stopped with
+    snapshot (its ``session ...`` line), or its full version where a draft came first (module
+    docstring); ``rate_kbit``: tbf on both ends (None: unshaped); ``sound``: leave out
+    ``--no-sound``. Both ends run with ``-v``. The receiver runs ``--once`` with CURVE keys
+    made for the call (``encrypted=False``: both ends ``--plain``). The sender is stopped with
     SIGTERM at the window's end and the receiver ends on its Bye (or is stopped too).
     ``join_timeout_s`` bounds the wait for the snapshot.
 
@@ -452,12 +496,12 @@ def measure_call(
         receive_keys = ["--key", str(keys / "bob.key_secret"), "--peer", str(keys / "alice.key")]
         send_keys = ["--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key")]
         receive_cmd = [
-            *facewire, "receive", "--bind", address, "--once",
+            *facewire, "-v", "receive", "--bind", address, "--once",
             "--stats", str(folder / "receiver.json"),
             *(receive_keys if encrypted else ["--plain"]), *extra_receive_args,
         ]  # fmt: skip
         send_cmd = [
-            *facewire, "send", "--connect", address, "--loop",
+            *facewire, "-v", "send", "--connect", address, "--loop",
             *(["--input", str(clip)] if clip is not None else []),
             *([] if sound else ["--no-sound"]),
             "--stats", str(folder / "sender.json"),
@@ -491,8 +535,11 @@ def measure_call(
                 started = time.monotonic()
                 both = [receiver, sender]
                 if note(_wait_for(receiver, "session ", join_timeout_s, both)):
-                    say(f"the receiver has the snapshot; settling {settle_s:g} s")
-                    if note(_hold(settle_s, both)):
+                    note(_wait_for_full_snapshot(receiver, sender, both, say))
+                    going = all(p.running() for p in both)  # a late full snapshot is noted only
+                    if going:
+                        say(f"the receiver has the snapshot; settling {settle_s:g} s")
+                    if going and note(_hold(settle_s, both)):
                         start, tcp1 = link.counters(), link.tcp()
                         result["load"] = [os.getloadavg()[0]]
                         say(f"steady window: {seconds:g} s")

@@ -74,6 +74,10 @@ def test_a_call_on_a_clean_link_is_counted_both_ways() -> None:
     assert r["receiver"]["ended_by"] == "bye"
     assert r["first_picture_s"] is not None and r["first_picture_s"] > 0
     assert r["offered_s"] < r["snapshot_s"]
+    # The bundled clip's snapshot takes over a second at the default budget: a draft comes
+    # first and the full one behind the media; the steady window waits for it.
+    assert r["receiver"]["refined"] == 1
+    assert r["full_snapshot_s"] is not None and r["full_snapshot_s"] > r["snapshot_s"]
 
 
 @needs_namespaces
