@@ -8,9 +8,16 @@ facewire.quality: frame i against frame i, luma SSIM and PSNR over the face, the
 whole frame, regions from the input's own landmarks (tracked once).
 
 Rates are bits per second over the clip's duration: "amortised" counts everything (our
-snapshot, the codecs' key frame), "steady" everything after it. Our rates are per channel,
-as payload and on the wire (facewire.wire states the model); our totals leave the sound out
-(the codecs compared carry none).
+snapshot, the codecs' key frame), "steady" everything after it. Our payload rates are per
+channel; our totals leave the sound out (the codecs compared carry none).
+
+On the wire, our call is counted, not modelled: where the machine allows (root, ``ip
+netns``), the same clip (its first --frames frames, looping) goes face only through a real
+call between two network namespaces joined by a veth pair, and the link's own counters give
+the bytes and packets each way over a steady window about as long as the clip, after the
+full snapshot (facewire/onlink.py). Elsewhere our wire rate is unknown: no model of the
+datagram path met the count within 3% (facewire/wire.py says what was tried). The codecs'
+wire rates are a model: their frames over SRTP/UDP (facewire.wire.rtp_bytes).
 """
 
 from __future__ import annotations
@@ -36,13 +43,18 @@ from facewire.rdreport import break_even, matches, print_report
 
 logger = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 DEFAULT_RATES_KBPS = "8,16,32,64"
 DEFAULT_LADDER = "1,0.5,0.25"
 #: Channels left out of our totals: the codecs compared carry no sound.
 NOT_PICTURE = ("audio",)
 #: Ladder rungs whose shorter side would be under this many pixels are left out.
 MIN_RUNG_SIDE = 64
+#: Our call on a link: its steady window is the clip's length, at least this long (the
+#: keyframes that bring REM patches come every 4 s), and starts this long after the receiver
+#: has the full snapshot.
+MIN_LINK_WINDOW_S = 8.0
+LINK_SETTLE_S = 2.0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -142,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
     clip = Path(args.input) if args.input else demo_clip_path()
     with VideoSource(clip) as video:  # a missing or unreadable file ends here, one line
         width, height, fps = video.width, video.height, video.fps
+        clip_frames = video.frame_count
 
     landmarks = _track(clip, args.frames)
     count = len(landmarks)
@@ -171,6 +184,12 @@ def run(args: argparse.Namespace) -> int:
     }
     with tempfile.TemporaryDirectory(prefix="facewire-bandwidth-") as tmp:
         result["ours"] = run_ours(clip, count, fps, args.fast, landmarks, Path(tmp))
+        whole = clip_frames is not None and count >= clip_frames
+        result["ours"]["wire"] = our_wire(clip, count, fps, whole, Path(tmp))
+    wire_up = result["ours"]["wire"].get("kbps", {}).get("up")
+    if wire_up is not None:
+        # The direction the codecs' SRTP model counts: sender to receiver.
+        result["ours"]["kbps"]["wire"] = {"steady": wire_up}
     result["points"] = run_codecs(clip, count, fps, specs, rates, ladder, landmarks)
     result["matches"] = matches(result["ours"], result["points"], [s.name for s in specs])
     result["break_even"] = break_even(result)
@@ -250,30 +269,82 @@ def _kbps(nbytes: float, duration_s: float) -> float:
 
 
 def our_rates(stats: dict[str, Any]) -> dict[str, Any]:
-    """Our call's kbit/s per channel from ``facewire demo``'s stats: payload, ZeroMQ stream
-    (framing and encryption) and IP packets (TCP/IP headers and ACKs), amortised and steady."""
+    """Our call's payload kbit/s per channel from ``facewire demo``'s stats, the picture's
+    totals amortised and steady, and the messages per channel (both directions)."""
     duration = stats["duration_s"]
-    curve = bool(stats.get("encrypted", True))
-    costs = wire.channel_costs(stats["messages"], curve)
-    setup = wire.setup_cost(curve)
-    channels = list(stats["bytes"])
-    levels = {
-        "payload": {ch: _kbps(stats["bytes"][ch], duration) for ch in channels},
-        "zeromq": {ch: _kbps(costs[ch].zmtp, duration) for ch in channels},
-        "wire": {ch: _kbps(costs[ch].ip, duration) for ch in channels},
-    }
-    levels["zeromq"]["setup"] = _kbps(setup.zmtp, duration)
-    levels["wire"]["setup"] = _kbps(setup.ip, duration)
-    totals = {}
-    for level, by_channel in levels.items():
-        picture = {ch: v for ch, v in by_channel.items() if ch not in NOT_PICTURE}
-        steady = sum(v for ch, v in picture.items() if ch not in ("snapshot", "setup"))
-        totals[level] = {"amortised": sum(picture.values()), "steady": steady}
+    payload = {ch: _kbps(n, duration) for ch, n in stats["bytes"].items()}
+    picture = {ch: v for ch, v in payload.items() if ch not in NOT_PICTURE}
+    steady = sum(v for ch, v in picture.items() if ch != "snapshot")
+    messages: dict[str, int] = {}
+    for by_channel in stats["messages"].values():
+        for channel, sizes in by_channel.items():
+            messages[channel] = messages.get(channel, 0) + sum(int(n) for _, n in sizes)
     return {
-        "kbps": totals,
-        "channels_kbps": levels,
-        "messages": {ch: costs[ch].messages for ch in channels},
+        "kbps": {"payload": {"amortised": sum(picture.values()), "steady": steady}},
+        "channels_kbps": {"payload": payload},
+        "messages": messages,
     }
+
+
+def our_wire(clip: Path, count: int, fps: float, whole: bool, folder: Path) -> dict[str, Any]:
+    """Our call on the wire, counted on a veth link (facewire/onlink.py): the clip (``whole``)
+    or its first ``count`` frames, looping, face only; or why it is unknown.
+
+    Returns ``source`` "measured" with ``kbps`` and ``pps`` each way (``up``: sender to
+    receiver, ``down``, ``total``; IP headers counted, Ethernet's not), ``mean_packet``,
+    ``seconds`` (the steady window), ``link``, ``sent`` (what the sender played), the frames
+    sent and shown, and the call's ``notes``; or ``source`` "unknown" with ``why``.
+    """
+    from facewire import onlink
+
+    reason = onlink.unavailable()
+    if reason is not None:
+        return {"source": "unknown", "why": f"without a link to count on: {reason}"}
+    seconds = max(count / fps, MIN_LINK_WINDOW_S)
+    sent = clip if whole else _first_frames(clip, count, fps, folder)
+    try:
+        with _progress(1, "our call on a link") as bar:
+            r = onlink.measure_call(sent, seconds, None, sound=False, settle_s=LINK_SETTLE_S)
+            bar.update()
+    except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
+        return {"source": "unknown", "why": f"the link could not be made: {exc}"}
+    steady = r.get("steady")
+    if steady is None:
+        return {"source": "unknown", "why": f"the call on the link failed: {r['problem']}"}
+    directions = ("up", "down", "total")
+    return {
+        "source": "measured",
+        "link": r["link"],
+        "sent": "the clip" if whole else f"its first {count} frames",
+        "seconds": steady["seconds"],
+        "settle_s": LINK_SETTLE_S,
+        "kbps": {d: steady[d]["kbps"] for d in directions},
+        "pps": {d: steady[d]["pps"] for d in directions},
+        "mean_packet": {d: steady[d]["mean_packet"] for d in directions},
+        "frames_sent": r.get("frames_sent"),
+        "frames_shown": r.get("frames_shown"),
+        "notes": r["notes"],
+    }
+
+
+def _first_frames(clip: Path, count: int, fps: float, folder: Path) -> Path:
+    """The first ``count`` frames of ``clip`` as a lossless video (FFV1) the sender can loop."""
+    import cv2
+
+    path = folder / "first-frames.avi"
+    writer: Any = None
+    try:
+        for frame in _frames(clip, count):
+            if writer is None:
+                size = (frame.shape[1], frame.shape[0])
+                writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"FFV1"), fps, size)
+                if not writer.isOpened():
+                    raise RuntimeError(f"cannot write {path} (FFV1)")
+            writer.write(frame)
+    finally:
+        if writer is not None:
+            writer.release()
+    return path
 
 
 def run_ours(

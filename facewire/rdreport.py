@@ -20,8 +20,9 @@ logger = logging.getLogger(__name__)
 #: Quality regions compared in the final table and the plot.
 COMPARED = ("face", "head")
 ACCOUNTING = ("amortised", "steady")
-#: Rates compared: the payload (our messages, the codecs' bitstream), and IP packets (ours
-#: over ZeroMQ and TCP, theirs over SRTP; facewire.wire).
+#: Rates compared: the payload (our messages, the codecs' bitstream), and IP packets sender
+#: to receiver, steady only (ours counted on a link, facewire/onlink.py; theirs a model, over
+#: SRTP: facewire.wire).
 LEVELS = ("payload", "wire")
 
 
@@ -41,11 +42,13 @@ def codec_curve(
 def matches(
     ours: dict[str, Any], points: Sequence[dict[str, Any]], names: Sequence[str]
 ) -> list[dict[str, Any]]:
-    """For each codec, region, accounting and level: the rate it needs to match our SSIM, that
-    rate over ours, and its SSIM at our rate."""
+    """For each codec, region, accounting and level where our rate is known: the rate it needs
+    to match our SSIM, that rate over ours, and its SSIM at our rate."""
     out = []
     for codec, region, level, accounting in itertools.product(names, COMPARED, LEVELS, ACCOUNTING):
-        our_rate = ours["kbps"][level][accounting]
+        our_rate = ours["kbps"].get(level, {}).get(accounting)
+        if our_rate is None:
+            continue
         our_ssim = ours["quality"]["ssim"][region]
         curve = codec_curve(points, codec, region, accounting, level)
         need = rate_for(curve, our_ssim)
@@ -106,21 +109,19 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
         f"input {result['input']}: {result['frames']} frames, {result['width']}x"
         f"{result['height']} at {result['fps']:.2f} fps ({result['untracked']} without a face)"
     )
-    levels = ours["channels_kbps"]
-    channels = list(levels["wire"])
+    payload = ours["channels_kbps"]["payload"]
     print(
         "our call, kbit/s   "
-        + "".join(f"{c:>10}" for c in channels)
+        + "".join(f"{c:>10}" for c in payload)
         + "     total    steady  (totals: the picture, sound left out)"
     )
-    for level, name in (("payload", "payload"), ("zeromq", "ZeroMQ+CURVE"), ("wire", "TCP/IP")):
-        row = [levels[level].get(c) for c in channels]
-        tot = ours["kbps"][level]
-        print(
-            f"  {name:<16}"
-            + "".join(f"{_f(v, 2):>10}" for v in row)
-            + f"{_f(tot['amortised'], 2):>10}{_f(tot['steady'], 2):>10}"
-        )
+    tot = ours["kbps"]["payload"]
+    print(
+        f"  {'payload':<16}"
+        + "".join(f"{_f(v, 2):>10}" for v in payload.values())
+        + f"{_f(tot['amortised'], 2):>10}{_f(tot['steady'], 2):>10}"
+    )
+    print_wire(ours["wire"])
     call = ours["call"]
     print(
         f"our call: {call['frames_in']} frames in, {call['frames_out']} out, "
@@ -133,7 +134,10 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
         + ", ".join(f"{r} {q['ssim'][r]:.3f} / {q['psnr_db'][r]:.1f}" for r in REGIONS)
         + f" (the recording alone: face {ceiling['ssim']['face']:.3f})"
     )
-    print("\ncodec operating points (payload kbit/s amortised / steady; SSIM face, head, frame):")
+    print(
+        "\ncodec operating points (payload kbit/s amortised / steady; on the wire, steady, a "
+        "model: over SRTP/UDP; SSIM face, head, frame):"
+    )
     for spec in specs:
         print(f"  {spec.label}")
         for p in (p for p in result["points"] if p["codec"] == spec.name):
@@ -142,6 +146,7 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
             print(
                 f"    {p['width']:>4}x{p['height']:<4} target {p['target_kbps']:>6g}: "
                 f"{k['amortised']:7.1f} / {k['steady']:7.1f}   "
+                f"SRTP {p['kbps']['wire']['steady']:7.1f}   "
                 f"{s['face']:.3f}  {s['head']:.3f}  {s['frame']:.3f}"
                 + (f"  ({p['dropped']} dropped)" if p["dropped"] else "")
             )
@@ -179,10 +184,17 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
         f"  (ours: {a_rate:.1f} kbit/s amortised, {s_rate:.1f} steady; "
         "- : outside the rates measured)"
     )
-    wire_rate = ours["kbps"]["wire"]["steady"]
+    wire_rate = ours["kbps"].get("wire", {}).get("steady")
+    if wire_rate is None:
+        print(
+            "\non the wire: no comparison, our rate is unknown (above); theirs, a model over "
+            "SRTP/UDP, is in the codec operating points"
+        )
+        return
     print(
-        f"\non the wire, steady (ours {wire_rate:.1f} kbit/s of IP packets over ZeroMQ and TCP; "
-        "theirs over SRTP/UDP): rate each codec needs for our SSIM, x ours"
+        f"\non the wire, steady, sender to receiver (ours {wire_rate:.2f} kbit/s of IP packets, "
+        "measured on a veth link; theirs modelled over SRTP/UDP, RTCP not counted; our SSIM "
+        "from the call above): rate each codec needs for our SSIM, x ours"
     )
     for region in COMPARED:
         cells = []
@@ -191,6 +203,31 @@ def print_report(result: dict[str, Any], specs: Sequence[CodecSpec]) -> None:
             if m is not None:
                 cells.append(f"{spec.name} {_need(m)} ({_times(m)})")
         print(f"  {region}: " + ", ".join(cells))
+
+
+def print_wire(wire: dict[str, Any]) -> None:
+    """Our call on the wire: what a link counted (facewire.bandwidth.our_wire), or why not."""
+    if wire["source"] != "measured":
+        print(
+            f"our call on the wire: unknown, {wire['why']} (no model stands in for a count: "
+            "facewire/wire.py says why)"
+        )
+        return
+    print(
+        f"our call on the wire, steady: measured on a veth link between two network namespaces "
+        f"({wire['link'].removeprefix('veth, ')}), {wire['sent']} looping, face only; "
+        f"{wire['seconds']:.1f} s from {wire['settle_s']:g} s after the full snapshot, "
+        f"{wire['frames_shown']} frames shown of {wire['frames_sent']} sent; IP headers "
+        "counted, Ethernet's not"
+    )
+    names = {"up": "up (sender to receiver)", "down": "down (receiver to sender)", "total": "both"}
+    for d, name in names.items():
+        print(
+            f"  {name:<26}{wire['kbps'][d]:8.2f} kbit/s {wire['pps'][d]:6.1f} packets/s  "
+            f"(mean {wire['mean_packet'][d]:.0f} B)"
+        )
+    for note in wire.get("notes") or []:
+        print(f"  (the call on the link: {note})")
 
 
 def _need(m: dict[str, Any]) -> str:
