@@ -313,9 +313,15 @@ class SenderMediaPath(_Path):
             not p.live(now) and now - p.offered_at >= PATH_TIMEOUT_S for p in self._by_key.values()
         )
 
-    def budget_bps(self, now: float, most: float) -> float:
-        """The sending budget: ``most``, or less where a receiver's link carries less."""
-        rates = [p.controller.rate_bps for p in self.live(now)]
+    def budget_bps(self, now: float, most: float, congested_only: bool = False) -> float:
+        """The sending budget: ``most``, or less where a receiver's link carries less
+        (``congested_only``: where its reports have shown a queue or loss: not the estimate's
+        cautious start, which the datagrams' packing need not follow)."""
+        rates = [
+            p.controller.rate_bps
+            for p in self.live(now)
+            if p.controller.decreases or not congested_only
+        ]
         return min([most, *rates])
 
     def send(self, bundle: bytes, now: float) -> int:
@@ -385,8 +391,12 @@ class Bundler:
         """Whether ``data`` (handed to :meth:`add_patch`) has not all left yet."""
         return any(packet is data for _, packet, _ in self._patches)
 
-    def end_frame(self, now: float, budget_bps: float) -> list[bytes]:
-        """The bundles to send now that a frame is done (none until the k-th frame)."""
+    def end_frame(
+        self, now: float, budget_bps: float, packing_bps: float | None = None
+    ) -> list[bytes]:
+        """The bundles to send now that a frame is done (none until the k-th frame):
+        ``packing_bps`` (default ``budget_bps``) sets how many frames share a datagram,
+        ``budget_bps`` what the patches may take."""
         self._frames += 1
         if self._due_since is None:
             self._due_since = now
@@ -394,7 +404,7 @@ class Bundler:
             rate = self._due_bytes * 8.0 / (now - self._due_since)
             self.due_bps = rate if self.due_bps == 0 else 0.5 * (self.due_bps + rate)
             self._due_bytes, self._due_since = 0, now
-        self.k = frames_per_datagram(budget_bps, self.fps)
+        self.k = frames_per_datagram(budget_bps if packing_bps is None else packing_bps, self.fps)
         if self._frames < self.k:
             return []
         self._frames = 0

@@ -550,7 +550,8 @@ class SenderEndpoint(_Endpoint):
         self._bundler.redundant = any(p.controller.lossy for p in self._media.live(now))
         if self._refine:
             self._send_refinements(now)
-        for bundle in self._bundler.end_frame(now, self.budget_bps()):
+        packing = self._media.budget_bps(now, self.max_bps, congested_only=True)
+        for bundle in self._bundler.end_frame(now, self.budget_bps(), packing):
             self._media.send(bundle, now)
 
     def set_snapshot(self, snapshot: Snapshot, draft: Snapshot | None = None) -> None:

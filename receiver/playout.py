@@ -70,6 +70,9 @@ RESYNC_US = 500_000
 PHASE_FRAMES = 60
 #: The receive loop looks at the network at least this often.
 MAX_WAIT_US = 200_000
+#: Frames of one datagram drawn at their capture times' spacing, up to this far apart (four
+#: frames at 30 fps: the most one datagram carries).
+MAX_SPACING_US = 140_000
 
 
 @dataclass(frozen=True)
@@ -178,12 +181,19 @@ class _Entry:
 
 
 class ArrivalPlayout:
-    """Playout delay 0: the newest frame is drawn when it arrives; frames it overtook (they
-    arrived together) are held in the recording and not drawn."""
+    """Playout delay 0: each frame is drawn when it arrives, the least latency.
+
+    Frames that arrive together because the sender bundled them in one datagram (protocol
+    version 3: one datagram every two frames by default) are drawn one after the other at
+    their capture times' spacing, from the first one's arrival on, so motion keeps the pace
+    it was captured at (each of them shows as late as the first). Frames that a newer one
+    overtook (they came late, after a stall) are held in the recording and not drawn.
+    """
 
     def __init__(self) -> None:
-        self._new: list[_Entry] = []
+        self._new: list[tuple[int, _Entry]] = []  # (when it is due, µs receiver clock, entry)
         self._last_seq = -1
+        self._batch: tuple[int, int, int] | None = None  # arrival, first due, first capture
 
     @property
     def pending(self) -> int:
@@ -200,20 +210,33 @@ class ArrivalPlayout:
             logger.debug("frame %d after frame %d: dropped", values.seq, self._last_seq)
             return
         self._last_seq = values.seq
-        self._new.append(_Entry(values, values.capture_us, arrival_us, after_gap))
+        entry = _Entry(values, values.capture_us, arrival_us, after_gap)
+        batch = self._batch
+        if batch is not None and batch[0] == arrival_us:  # in the same datagram as the last
+            due = batch[1] + (values.capture_us - batch[2])
+            if not 0 <= due - arrival_us <= MAX_SPACING_US:
+                due = arrival_us  # not a bundle's spacing: drawn now, as any other
+        else:
+            due = arrival_us
+            self._batch = (arrival_us, arrival_us, values.capture_us)
+        self._new.append((due, entry))
 
     def poll(self, now_us: int) -> list[Step]:
-        if not self._new:
+        ready = [entry for due, entry in self._new if due <= now_us]
+        if not ready:
             return []
-        *overtaken, newest = self._new
-        self._new = []
+        *overtaken, newest = ready
+        # Frames still waiting for their turn that the newest overtook are not drawn either.
+        self._new = [(due, e) for due, e in self._new if e.seq > newest.seq]
         steps: list[Step] = [Record(e.seq, None, e.after_gap) for e in overtaken]
         steps.append(Record(newest.seq, newest.values, newest.after_gap))
         steps.append(Show(newest.values, None, 0.0, newest.capture_us, newest.arrival_us))
         return steps
 
     def wait_us(self, now_us: int) -> int:
-        return 0 if self._new else MAX_WAIT_US
+        if not self._new:
+            return MAX_WAIT_US
+        return max(0, min(due for due, _ in self._new) - now_us)
 
 
 class TransitWindow:

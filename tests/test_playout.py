@@ -247,6 +247,30 @@ def test_on_arrival_the_newest_is_drawn_and_the_ones_it_overtook_are_held() -> N
     assert playout.poll(OFFSET_US + 20) == []
 
 
+def test_on_arrival_the_frames_of_one_datagram_are_drawn_at_their_own_pace() -> None:
+    """A datagram carrying two frames (the sender's default): both drawn, 33 ms apart, from
+    the first one's arrival on, so the screen keeps 30 pictures a second."""
+    arrivals = []
+    for pair in range(5):
+        at = OFFSET_US + START_US + (2 * pair + 1) * FRAME_US + 5_000  # after its second frame
+        arrivals += [(at, frame(2 * pair), False), (at, frame(2 * pair + 1), False)]
+    steps = play(ArrivalPlayout(), arrivals, arrivals[-1][0] + 200_000)
+    assert [s.seq for _, s in steps if isinstance(s, Record) and s.values is None] == []
+    shown = shows(steps)
+    assert [s.a.seq for _, s in shown] == list(range(10))
+    gaps = np.diff([t for t, _ in shown])
+    assert np.allclose(gaps, FRAME_US, atol=1)
+
+
+def test_on_arrival_frames_that_came_late_together_are_not_replayed() -> None:
+    """After a stall, frames far apart that come in one read: the newest is drawn at once."""
+    at = OFFSET_US + START_US + 10 * FRAME_US
+    arrivals = [(at, frame(seq), False) for seq in range(10)]
+    shown = shows(play(ArrivalPlayout(), arrivals, at + 500_000))
+    assert [s.a.seq for _, s in shown][-1] == 9
+    assert shown[-1][0] == at
+
+
 def test_settings() -> None:
     assert isinstance(make_playout(PlayoutSettings(0), 30.0), ArrivalPlayout)
     buffer = make_playout(PlayoutSettings(80, 60), 25.0)
