@@ -48,10 +48,10 @@ RESTART_FRAMES = 250
 #: Margin the sound's own latency keeps over the slowest recent packet, µs.
 MARGIN_US = 10_000
 #: The least latency the sound starts with, µs: a packet is sent when the video frame after
-#: its 20 ms is read (up to 33 ms at 30 fps) and then waits for its datagram (one every two
-#: frames by default, protocol/media_path.py), so before the first packets have shown what
-#: the link does, this keeps them from being late.
-MIN_LATENCY_US = 100_000
+#: its 20 ms is read (up to 33 ms at 30 fps, and that frame's encoding) and then waits for its
+#: datagram (one every two frames by default, protocol/media_path.py: up to 33 ms more), so
+#: before the first packets have shown what the link does, this keeps them from being late.
+MIN_LATENCY_US = 140_000
 #: A step due this much later after its capture than the latency needs now (the first
 #: packets of a call are often slow, or stamped off the later ones' pace: the run's start
 #: then sets too long a latency for all of it) makes the run catch up, µs ...
