@@ -80,7 +80,10 @@ DEFAULT_BUDGET_BPS = 32_000.0
 #: the budget is wide, one per two, three or four frames as it narrows.
 HEADER_SHARE = 0.25
 MAX_FRAMES_PER_DATAGRAM = 4
-#: The token bucket of the sender's pacing holds this many seconds of the budget.
+#: The token bucket of the sender's pacing holds this many seconds of the budget at most, and
+#: no more than one datagram interval's: a datagram never takes longer than that to cross a
+#: link at the budget's rate, so a patch slice cannot hold the next frame's datagram up (a
+#: full 1200-byte datagram takes 400 ms at 24 kbit/s).
 BUCKET_S = 0.25
 #: Most datagrams read per call (bounds the time spent under a flood).
 _MAX_READ = 256
@@ -416,7 +419,8 @@ class Bundler:
             return []
         rate = min(budget_bps, 1e9) / 8.0  # a Bye's flush pays whatever it costs
         if self._filled is not None:
-            self._tokens = min(rate * BUCKET_S, self._tokens + rate * (now - self._filled))
+            depth = rate * min(BUCKET_S, self.k / self.fps)
+            self._tokens = min(depth, self._tokens + rate * (now - self._filled))
         self._filled = now
         out: list[bytes] = []
         elements: list[bytes] = []

@@ -96,6 +96,7 @@ from protocol.keys import KeyPair, load_keypair, load_public_key, load_public_ke
 from protocol.media_path import (
     DATAGRAM_COST,
     DEFAULT_BUDGET_BPS,
+    HELLO_INTERVAL_S,
     REPORT_INTERVAL_S,
     Bundler,
     ReceiverMediaPath,
@@ -1076,6 +1077,11 @@ class ReceiverEndpoint(_Endpoint):
                 self._send(SnapshotRequest())
                 next_request = now + SNAPSHOT_RETRY_MS / 1000
             wait = min(remaining, _ms(next_request - now) + 1)
+            if self._media is not None and self._media.keyed:
+                # Open the media path while the snapshot crosses: the first frame after the
+                # join then goes as a datagram, not on PUB behind the snapshot's TCP queue.
+                self._read_datagrams()
+                wait = min(wait, _ms(HELLO_INTERVAL_S))
             if not self._dealer.poll(wait, zmq.POLLIN):
                 continue
             data = self._dealer.recv()
@@ -1090,6 +1096,7 @@ class ReceiverEndpoint(_Endpoint):
                 self._accept(packet, data)
                 if self._media is not None and packet.udp:
                     self._media.take_key(packet, self._clock())
+                    self._read_datagrams()  # the first hello
                 continue
             if not isinstance(packet, Snapshot):
                 self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
