@@ -183,6 +183,17 @@ class _Path:
         self.counts.wire_bytes_received += len(data) + IP_UDP_BYTES
         return data, address
 
+    def _open(self, opener: Opener, data: bytes) -> tuple[int, list[bytes]] | None:
+        """(packet index, elements) of an authentic datagram, else None (counted by why)."""
+        try:
+            index, bundle = opener.open(data)
+            return index, list(unpack(bundle))
+        except DatagramError as exc:
+            self.counts.drop(_why(exc))
+        except BundleError:
+            self.counts.drop("malformed")
+        return None
+
     def close(self) -> None:
         if not self.closed:
             self.closed = True
@@ -256,16 +267,14 @@ class SenderMediaPath(_Path):
             if peer is None:
                 self.counts.drop("malformed")
                 continue
-            try:
-                _, bundle = peer.opener.open(data)
-                elements = list(unpack(bundle))
-                reports = [Report.parse(e) for e in elements if e[0] == REPORT]
-                if len(reports) != len(elements):
-                    raise BundleError("a receiver's datagram carries only reports")
-            except DatagramError as exc:
-                self.counts.drop(_why(exc))
+            opened = self._open(peer.opener, data)
+            if opened is None:
                 continue
+            try:  # a receiver's datagram carries reports only
+                reports = [Report.parse(e) for e in opened[1] if e[0] == REPORT]
             except BundleError:
+                reports = []
+            if len(reports) != len(opened[1]):
                 self.counts.drop("malformed")
                 continue
             fresh = not peer.live(now)
@@ -512,15 +521,10 @@ class ReceiverMediaPath(_Path):
             if got is None:
                 break
             data, address = got
-            try:
-                index, bundle = self._opener.open(data)
-                elements = list(unpack(bundle))
-            except DatagramError as exc:
-                self.counts.drop(_why(exc))
+            opened = self._open(self._opener, data)
+            if opened is None:
                 continue
-            except BundleError:
-                self.counts.drop("malformed")
-                continue
+            index, elements = opened
             fresh = not self.live(now)
             self._peer, self.last_heard = address, now
             if index == self._opener.window.highest:  # a late one names no newer datagram

@@ -843,10 +843,17 @@ class SenderEndpoint(_Endpoint):
         if not snapshot_ms or len(self._draft_bytes) * 8 / (snapshot_ms / 1000) < FAST_JOIN_BPS:
             return
         del self._refine[identity]
+        self._send_full(identity)
+
+    def _send_full(self, identity: bytes) -> None:
+        """The full snapshot to ``identity`` on the ROUTER connection (never blocks)."""
         try:
             self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK)
         except zmq.ZMQError:
             return
+        self._count_refinement()
+
+    def _count_refinement(self) -> None:
         self.refinements_sent += 1
         self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
 
@@ -874,16 +881,12 @@ class SenderEndpoint(_Endpoint):
                     self._bundler.add_patch(self._snapshot_bytes)
                     queued = True
                 self._refine[identity] = (now + REFINE_RETRY_S, left - 1)
+                self._count_refinement()
             elif not self._media.live_for(identity, now) and now - due < REFINE_RETRY_S:
                 continue  # the path opens once the receiver has built its decoder
             else:
                 del self._refine[identity]
-                try:
-                    self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK)
-                except zmq.ZMQError:
-                    continue
-            self.refinements_sent += 1
-            self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
+                self._send_full(identity)
 
 
 class ReceiverEndpoint(_Endpoint):
