@@ -135,6 +135,8 @@ FRAME_KINDS = (KeyFrame, DeltaFrame)
 MEDIA_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, AudioFrame)
 #: A REM patch at least this long waits for what the budget leaves (else it rides with its frame).
 _PACED_PATCH_BYTES = 64
+#: Most datagrams sent at once to empty the queue of patches before a Bye.
+_MAX_DRAIN_DATAGRAMS = 64
 #: Updates remembered to drop the second of two copies that came by both paths.
 _RECENT_UPDATES = 512
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
@@ -617,6 +619,14 @@ class SenderEndpoint(_Endpoint):
 
     def _bundle(self, packet: Packet, data: bytes, now: float) -> None:
         assert self._media is not None
+        if isinstance(packet, Bye):
+            # What still waits for the budget (patches) goes first: after the Bye the
+            # receiver takes nothing more of this session.
+            for _ in range(_MAX_DRAIN_DATAGRAMS):
+                if not self._bundler.patch_bytes_waiting:
+                    break
+                for bundle in self._bundler.flush(now, math.inf):
+                    self._media.send(bundle, now)
         if isinstance(packet, RemPatch) and len(data) >= _PACED_PATCH_BYTES:
             self._bundler.add_patch(data)
         else:
