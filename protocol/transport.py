@@ -526,6 +526,7 @@ class SenderEndpoint(_Endpoint):
         peers = self._media.live(self._clock())
         last = peers[0].controller.last if peers else None
         return {
+            "receivers_on_udp": len(peers),
             "frames_per_datagram": self._bundler.k,
             "budget_kbps": self.budget_bps() / 1000,
             "rate_decreases": sum(p.controller.decreases for p in peers),
@@ -627,7 +628,10 @@ class SenderEndpoint(_Endpoint):
                     break
                 for bundle in self._bundler.flush(now, math.inf):
                     self._media.send(bundle, now)
-        if isinstance(packet, RemPatch) and len(data) >= _PACED_PATCH_BYTES:
+        if isinstance(packet, RemPatch) and (
+            len(data) >= _PACED_PATCH_BYTES or self._bundler.patch_bytes_waiting
+        ):
+            # (A small patch behind a paced one waits too: it may refer to that one's image.)
             self._bundler.add_patch(data)
         else:
             self._bundler.add(data)

@@ -1,0 +1,52 @@
+"""The datagram path keeps the order of REM patches: a small patch that refers to an image
+never overtakes the patch that brings that image, though the image waits for the budget
+(paced) and the reference would fit in the next datagram. Real sockets on loopback."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from transport_helpers import TIMEOUT_MS, frame, join, snapshot
+
+from protocol.packets import RemPatch
+from protocol.transport import ReceiverEndpoint, SenderEndpoint
+
+
+def test_a_reference_never_overtakes_the_image_it_names() -> None:
+    with SenderEndpoint(plain=True) as sender:
+        sender.set_snapshot(snapshot(seq=0))
+        with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
+            join(sender, receiver)
+            deadline = time.monotonic() + TIMEOUT_MS / 1000
+            while not (receiver.on_udp and sender.media_figures()["receivers_on_udp"]):
+                # The path opens with the receiver's first hello and the sender's answer.
+                assert time.monotonic() < deadline, "the media path did not open"
+                receiver.recv(10)
+                sender.end_frame()
+            image = RemPatch(1, "eye_left", "webp", _webp(), 10.0, 0.5, 0.5)
+            reference = RemPatch.referring(2, "eye_left", 1, 10.0, 0.5, 0.5)
+            assert len(bytes(image)) > 600 and len(bytes(reference)) < 64
+            sender.publish(image)  # paced: far more than a datagram's share of the budget
+            sender.publish(frame(1))
+            sender.end_frame()
+            sender.publish(reference)
+            sender.publish(frame(2))
+            sender.end_frame()
+            patches: list[int] = []
+            while len(patches) < 2:
+                assert time.monotonic() < deadline, f"patches received: {patches}"
+                sender.end_frame()
+                packet = receiver.recv(30)
+                if isinstance(packet, RemPatch):
+                    patches.append(packet.seq)
+            assert patches == [1, 2]
+
+
+def _webp() -> bytes:
+    import cv2
+
+    noise = np.random.default_rng(1).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    ok, data = cv2.imencode(".webp", noise, [cv2.IMWRITE_WEBP_QUALITY, 90])
+    assert ok
+    return data.tobytes()
