@@ -74,8 +74,10 @@ class RateController:
         self.rate_bps = start_bps
         self.last = Estimate()
         self.decreases = 0
-        self.loss_average = 0.0
-        self.lossy = False
+        # A call starts as if its link lost a little: the updates are repeated until about 5 s
+        # of reports have shown none lost, so a loss in the first seconds costs no picture.
+        self.loss_average = 1.5 * LOSS_REPEAT_ON
+        self.lossy = True
         self._sent: dict[int, float] = {}  # datagram index (low 32 bits) -> send time, s
         self._order: deque[int] = deque()
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
