@@ -153,13 +153,17 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+
+
 def _sound_kbps(text: str) -> float:
     from sender.audio import MAX_BITRATE, MIN_BITRATE
 
-    try:
-        kbps = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    kbps = _number(text)
     if not MIN_BITRATE <= kbps * 1000 <= MAX_BITRATE:
         raise argparse.ArgumentTypeError(
             f"{kbps:g} kbit/s is outside Opus' {MIN_BITRATE // 1000}-{MAX_BITRATE // 1000}"
@@ -168,10 +172,7 @@ def _sound_kbps(text: str) -> float:
 
 
 def _geometry_kbps(text: str) -> float:
-    try:
-        kbps = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    kbps = _number(text)
     if not (0 <= kbps < float("inf")):
         raise argparse.ArgumentTypeError(f"expected kbit/s >= 0 (0: no cap), got {text!r}")
     return kbps
@@ -194,10 +195,7 @@ def add_geometry_arguments(p: argparse.ArgumentParser) -> None:
 def _max_kbps(text: str) -> float:
     from protocol.congestion import MIN_RATE_BPS
 
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    value = _number(text)
     if not MIN_RATE_BPS / 1000 <= value < float("inf"):
         raise argparse.ArgumentTypeError(
             f"expected at least {MIN_RATE_BPS / 1000:g} kbit/s (the face alone needs that), "

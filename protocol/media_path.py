@@ -221,6 +221,10 @@ class _Receiver:
     def live(self, now: float) -> bool:
         return self.address is not None and now - self.last_heard < PATH_TIMEOUT_S
 
+    def down(self, now: float) -> bool:
+        """No live path, and none for PATH_TIMEOUT_S since its key or its last datagram."""
+        return not self.live(now) and now - max(self.offered_at, self.last_heard) >= PATH_TIMEOUT_S
+
 
 class SenderMediaPath(_Path):
     """The sender's UDP socket and the receivers it has keyed (by ROUTER identity)."""
@@ -302,7 +306,7 @@ class SenderMediaPath(_Path):
             if self.dest is not None and now - peer.last_hello >= HELLO_INTERVAL_S:
                 peer.last_hello = now
                 self._seal_to(peer, b"", now, self.dest)
-            if now - max(peer.offered_at, peer.last_heard) >= PATH_TIMEOUT_S:
+            if peer.down(now):
                 if not peer.fallback_told:
                     peer.fallback_told = True
                     logger.warning(
@@ -321,9 +325,7 @@ class SenderMediaPath(_Path):
 
     def fallback(self, now: float) -> bool:
         """Whether a keyed receiver has no live path (its media must go by PUB)."""
-        return any(
-            not p.live(now) and now - p.offered_at >= PATH_TIMEOUT_S for p in self._by_key.values()
-        )
+        return any(p.down(now) for p in self._by_key.values())
 
     def budget_bps(self, now: float, most: float, congested_only: bool = False) -> float:
         """The sending budget: ``most``, or less where a receiver's link carries less
