@@ -78,6 +78,9 @@ class RateController:
         # of reports have shown none lost, so a loss in the first seconds costs no picture.
         self.loss_average = 1.5 * LOSS_REPEAT_ON
         self.lossy = True
+        #: Whether the reports have shown loss since the repeats last stopped (not only the
+        #: call start's assumption).
+        self.losing = False
         self._sent: dict[int, float] = {}  # datagram index (low 32 bits) -> send time, s
         self._order: deque[int] = deque()
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
@@ -133,7 +136,9 @@ class RateController:
         if self.loss_average > LOSS_REPEAT_ON:
             self.lossy = True
         elif self.loss_average < LOSS_REPEAT_OFF:
-            self.lossy = False
+            self.lossy = self.losing = False
+        if loss > 0 and self.lossy:
+            self.losing = True
         received_bps = ((received_bytes - prev[3]) & 0xFFFFFFFF) * 8.0 / span
         self.last = Estimate(queue_ms, window_loss, received_bps)
         self._update(now, queue_ms, window_loss, received_bps)

@@ -79,6 +79,10 @@ DEFAULT_BUDGET_BPS = 32_000.0
 #: The datagrams' headers take at most this share of the budget: one datagram per frame when
 #: the budget is wide, one per two, three or four frames as it narrows.
 HEADER_SHARE = 0.25
+#: ... and at most this share where the link loses datagrams: a lost datagram's frames come
+#: again in the next one, so the frames a datagram waits for are also how late they come then
+#: (one datagram a frame at the default budget: 33 ms at 30 fps instead of 67).
+LOSSY_HEADER_SHARE = 0.4
 MAX_FRAMES_PER_DATAGRAM = 4
 #: The token bucket of the sender's pacing holds this many seconds of the budget at most, and
 #: no more than one datagram interval's: a datagram never takes longer than that to cross a
@@ -90,11 +94,13 @@ _MAX_READ = 256
 _RECV_BYTES = 2048  # more than any datagram we send: a longer one is not ours
 
 
-def frames_per_datagram(budget_bps: float, fps: float) -> int:
+def frames_per_datagram(budget_bps: float, fps: float, lossy: bool = False) -> int:
     """Frames whose updates share one datagram: the fewest that keep the datagrams' headers
-    within HEADER_SHARE of the budget (at most MAX_FRAMES_PER_DATAGRAM)."""
+    within HEADER_SHARE of the budget (LOSSY_HEADER_SHARE on a ``lossy`` link), at most
+    MAX_FRAMES_PER_DATAGRAM."""
+    share = LOSSY_HEADER_SHARE if lossy else HEADER_SHARE
     for k in range(1, MAX_FRAMES_PER_DATAGRAM):
-        if DATAGRAM_COST * 8 * fps / k <= HEADER_SHARE * budget_bps:
+        if DATAGRAM_COST * 8 * fps / k <= share * budget_bps:
             return k
     return MAX_FRAMES_PER_DATAGRAM
 
@@ -369,7 +375,8 @@ class Bundler:
 
     ``redundant``: on a lossy link each datagram carries the last one's updates again (not its
     patches), as RFC 2198's redundant audio does, so one lost datagram loses nothing; the
-    receiver drops the second copies.
+    receiver drops the second copies. ``losing``: the receiver's reports show loss now (the
+    repeats also run at a call's start, before any report): fewer frames share a datagram.
     """
 
     def __init__(self, fps: float) -> None:
@@ -377,6 +384,7 @@ class Bundler:
         self._due: list[bytes] = []
         self._last_due: list[bytes] = []
         self.redundant = False
+        self.losing = False
         self._patches: deque[tuple[int, bytes, int]] = deque()  # message, packet, offset sent
         self._message = 0
         self._frames = 0
@@ -418,7 +426,8 @@ class Bundler:
             rate = self._due_bytes * 8.0 / (now - self._due_since)
             self.due_bps = rate if self.due_bps == 0 else 0.5 * (self.due_bps + rate)
             self._due_bytes, self._due_since = 0, now
-        self.k = frames_per_datagram(budget_bps if packing_bps is None else packing_bps, self.fps)
+        packing = budget_bps if packing_bps is None else packing_bps
+        self.k = frames_per_datagram(packing, self.fps, self.losing)
         if self._frames < self.k:
             return []
         self._frames = 0

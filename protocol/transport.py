@@ -551,7 +551,9 @@ class SenderEndpoint(_Endpoint):
         now = self._clock()
         self._media.read(now)
         self._media.service(now)
-        self._bundler.redundant = any(p.controller.lossy for p in self._media.live(now))
+        live = self._media.live(now)
+        self._bundler.redundant = any(p.controller.lossy for p in live)
+        self._bundler.losing = any(p.controller.losing for p in live)
         if self._refine:
             self._send_refinements(now)
         packing = self._media.budget_bps(now, self.max_bps, congested_only=True)

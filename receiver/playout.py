@@ -73,6 +73,9 @@ MAX_WAIT_US = 200_000
 #: Frames of one datagram drawn at their capture times' spacing, up to this far apart (four
 #: frames at 30 fps: the most one datagram carries).
 MAX_SPACING_US = 140_000
+#: The frames' pace on arrival follows the least latency of a datagram's first frame over
+#: this long (a path that became slower is followed after it).
+SPACING_WINDOW_US = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -185,15 +188,22 @@ class ArrivalPlayout:
 
     Frames that arrive together because the sender bundled them in one datagram (protocol
     version 3: one datagram every two frames by default) are drawn one after the other at
-    their capture times' spacing, from the first one's arrival on, so motion keeps the pace
-    it was captured at (each of them shows as late as the first). Frames that a newer one
-    overtook (they came late, after a stall) are held in the recording and not drawn.
+    their capture times' spacing, so motion keeps the pace it was captured at: each frame is
+    due at its capture time plus the least latency a datagram's first frame had over the last
+    SPACING_WINDOW_US (each of them shows as late as the first of a bundle that came at once).
+    A frame that comes later than that (the repeat of a lost datagram's frame, with the next
+    frame in the same datagram; a stall) is due at once, so the newest frame overtakes it:
+    a loss costs a frame's picture, not the latency of the frames after it. Frames that a
+    newer one overtook are held in the recording and not drawn.
     """
 
     def __init__(self) -> None:
         self._new: list[tuple[int, _Entry]] = []  # (when it is due, µs receiver clock, entry)
         self._last_seq = -1
-        self._batch: tuple[int, int, int] | None = None  # arrival, first due, first capture
+        self._batch_arrival: int | None = None
+        # (arrival, arrival minus capture) of each datagram's first frame, recent ones; the
+        # latency kept is the least of them (clocks' offset included, which cancels out).
+        self._first: deque[tuple[int, int]] = deque()
 
     @property
     def pending(self) -> int:
@@ -211,14 +221,17 @@ class ArrivalPlayout:
             return
         self._last_seq = values.seq
         entry = _Entry(values, values.capture_us, arrival_us, after_gap)
-        batch = self._batch
-        if batch is not None and batch[0] == arrival_us:  # in the same datagram as the last
-            due = batch[1] + (values.capture_us - batch[2])
-            if not 0 <= due - arrival_us <= MAX_SPACING_US:
-                due = arrival_us  # not a bundle's spacing: drawn now, as any other
-        else:
-            due = arrival_us
-            self._batch = (arrival_us, arrival_us, values.capture_us)
+        if arrival_us != self._batch_arrival:  # the first frame of a datagram
+            self._batch_arrival = arrival_us
+            latency = arrival_us - values.capture_us
+            while self._first and self._first[-1][1] >= latency:
+                self._first.pop()
+            self._first.append((arrival_us, latency))
+            while self._first[0][0] < arrival_us - SPACING_WINDOW_US:
+                self._first.popleft()
+        due = values.capture_us + self._first[0][1]
+        if not 0 <= due - arrival_us <= MAX_SPACING_US:
+            due = arrival_us  # late for its pace, or not a bundle's spacing: drawn now
         self._new.append((due, entry))
 
     def poll(self, now_us: int) -> list[Step]:

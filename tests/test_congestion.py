@@ -170,6 +170,24 @@ def test_loss_without_a_queue_is_the_links_own() -> None:
     assert controller.decreases == 0
 
 
+def test_repeats_run_from_the_start_until_the_reports_show_no_loss() -> None:
+    """The updates are repeated from a call's start (a loss before the first report would
+    freeze the picture), stop after some seconds of clean reports, and start again with loss;
+    only loss the reports show makes the datagrams carry fewer frames (``losing``)."""
+    controller = RateController()
+    assert controller.lossy and not controller.losing
+    steps: list[tuple[float, bool, bool]] = []
+
+    def watch(c: RateController, now: float) -> None:
+        steps.append((now - T0, c.lossy, c.losing))
+
+    simulate(controller, 12, lost=lambda n: n >= 160 and n % 5 == 2, extra=watch)
+    clean = [t for t, lossy, _ in steps if not lossy]
+    assert clean and 2.0 < clean[0] < 8.0  # some seconds of reports without loss
+    assert not any(losing for t, _, losing in steps if t < 8.0)
+    assert steps[-1][1:] == (True, True)  # loss from 8 s on: repeats again, and fewer frames
+
+
 def test_at_most_one_decrease_per_hold() -> None:
     controller = RateController()
     steps = simulate(controller, 8, delay=growing_queue(since=1), report_every=0.0625)

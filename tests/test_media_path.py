@@ -118,6 +118,36 @@ def test_frames_per_datagram_grows_as_the_budget_narrows() -> None:
 # --- Bundler -----------------------------------------------------------------------------------
 
 
+def test_a_lossy_link_packs_fewer_frames_a_datagram() -> None:
+    """Where datagrams are lost, the repeat comes a datagram later: one a frame at the default
+    budget, while a thin budget still packs."""
+    assert frames_per_datagram(DEFAULT_BUDGET_BPS, FPS, lossy=True) == 1
+    assert frames_per_datagram(DEFAULT_BUDGET_BPS, FPS, lossy=False) == 2
+    assert frames_per_datagram(16_000, FPS, lossy=True) == 2
+    assert frames_per_datagram(8_000, FPS, lossy=True) == 3
+    bundler = Bundler(FPS)
+    bundler.losing = True
+    for i in range(4):
+        bundler.add(delta(i))
+        assert len(bundler.end_frame(1000 + i / FPS, DEFAULT_BUDGET_BPS)) == 1
+    assert bundler.k == 1
+
+
+def test_repeats_carry_the_last_datagrams_updates_again() -> None:
+    bundler = Bundler(FPS)
+    bundler.redundant = True
+    bundles = []
+    for i in range(4):
+        bundler.add(delta(i))
+        bundles += bundler.end_frame(1000 + i / FPS, 1e6)
+    assert [list(unpack(b)) for b in bundles] == [
+        [delta(0)],
+        [delta(0), delta(1)],
+        [delta(1), delta(2)],
+        [delta(2), delta(3)],
+    ]
+
+
 @pytest.mark.parametrize("budget, k", [(1e6, 1), (32_000, 2), (16_000, 3), (8_000, 4)])
 def test_end_frame_sends_every_k_frames(budget: float, k: int) -> None:
     bundler = Bundler(FPS)

@@ -262,6 +262,25 @@ def test_on_arrival_the_frames_of_one_datagram_are_drawn_at_their_own_pace() -> 
     assert np.allclose(gaps, FRAME_US, atol=1)
 
 
+def test_on_arrival_a_lost_datagrams_repeat_costs_a_picture_not_latency() -> None:
+    """One datagram a frame; datagram 4 is lost and its frame comes again with frame 5 (the
+    sender's repeat): frame 4 is not drawn, and frame 5 and those after it are drawn as soon
+    as they come, not at frame 4's pace behind it."""
+    arrivals = []
+    for seq in range(10):
+        if seq == 4:
+            continue
+        at = OFFSET_US + START_US + seq * FRAME_US + 5_000
+        arrivals += [(at, frame(seq - 1), False)] if seq == 5 else []
+        arrivals.append((at, frame(seq), False))
+    steps = play(ArrivalPlayout(), arrivals, arrivals[-1][0] + 200_000)
+    assert [s.seq for _, s in steps if isinstance(s, Record)] == list(range(10))
+    shown = shows(steps)
+    assert [s.a.seq for _, s in shown] == [0, 1, 2, 3, 5, 6, 7, 8, 9]
+    for t, s in shown:
+        assert t - s.media_us == shown[0][0] - shown[0][1].media_us  # all as late as the first
+
+
 def test_on_arrival_frames_that_came_late_together_are_not_replayed() -> None:
     """After a stall, frames far apart that come in one read: the newest is drawn at once."""
     at = OFFSET_US + START_US + 10 * FRAME_US
