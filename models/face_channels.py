@@ -98,8 +98,13 @@ def load_wire_basis(path: str | Path | None = None) -> WireBasis:
 
 
 def rig_hash(paths: tuple[Path, ...] | None = None) -> str:
-    """SHA-256 (hex) over the rig data both ends must share: the rig and the wire basis."""
-    paths = paths or (data_path("rig.json"), data_path("wire_basis.npz"))
+    """SHA-256 (hex) over the rig data both ends must share: the rig, the wire basis and the
+    canonical mesh (the snapshot's vertices are coded against it, protocol/mesh_code.py)."""
+    paths = paths or (
+        data_path("rig.json"),
+        data_path("wire_basis.npz"),
+        data_path("canonical_face_mesh.obj"),
+    )
     h = hashlib.sha256()
     for p in paths:
         h.update(Path(p).read_bytes())

@@ -28,6 +28,7 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
+from protocol import mesh_code
 from protocol.constants import (
     CHANNEL_AUDIO,
     CHANNEL_CONTROL,
@@ -242,8 +243,9 @@ class Snapshot(_Packet):
     session_id : uint32, new each time a sender starts
     seq : the first frame number the snapshot is valid for
     vertices : (n, 3) float, cm, model space; vertex i is landmark i of the canonical mesh.
-        Sent as float16 when given as float16 (a face's coordinates to 0.04 mm, half the
-        bytes), otherwise as float32.
+        Sent coded against the canonical mesh where ``meta["vertex_step"]`` gives the step in
+        cm (protocol/mesh_code.py: about 1 KB at 0.1 mm), else as float16 when given as
+        float16, otherwise as float32.
     texture, background : JPEG, PNG or WebP bytes (may be empty); the header must be valid
         and state at most MAX_IMAGE_SIDE pixels on a side
     channels : ``(name, size, step)`` of every frame channel, in coding order
@@ -317,6 +319,24 @@ class Snapshot(_Packet):
             else:
                 raise PacketError(f"{name}: expected str, int or float, got {_wire_type(val)}")
         _set(self, "meta", meta)
+        if mesh_code.VERTEX_STEP in meta:
+            step = meta[mesh_code.VERTEX_STEP]
+            if not isinstance(step, float) or not 0 < step <= 1:
+                raise PacketError(f"Snapshot.meta[{mesh_code.VERTEX_STEP!r}]: {step!r} cm")
+            if len(verts) != mesh_code.vertex_count():
+                raise PacketError(
+                    f"Snapshot.vertices: {len(verts)} vertices coded against the canonical "
+                    f"mesh's {mesh_code.vertex_count()}"
+                )
+
+    def _vertex_bytes(self) -> bytes:
+        step = self.meta.get(mesh_code.VERTEX_STEP)
+        if isinstance(step, float):
+            try:
+                return mesh_code.encode(self.vertices, step)
+            except mesh_code.MeshCodeError as exc:
+                raise PacketError(f"Snapshot.vertices: {exc}") from None
+        return self.vertices.astype("<f2" if self.vertices.dtype == np.float16 else "<f4").tobytes()
 
     def _to_fields(self) -> list[Any]:
         return [
@@ -326,7 +346,7 @@ class Snapshot(_Packet):
             self.height,
             self.fps,
             len(self.vertices),
-            self.vertices.astype("<f2" if self.vertices.dtype == np.float16 else "<f4").tobytes(),
+            self._vertex_bytes(),
             self.texture,
             self.background,
             [list(entry) for entry in self.channels],
@@ -340,6 +360,21 @@ class Snapshot(_Packet):
     def _from_fields(cls, f: list[Any]) -> Self:
         n = _int("Snapshot.n_vertices", f[5], 1, MAX_VERTICES)
         raw = _bytes("Snapshot.vertices", f[6])
+        step = f[12].get(mesh_code.VERTEX_STEP) if isinstance(f[12], dict) else None
+        if step is not None:
+            step = _float(f"Snapshot.meta[{mesh_code.VERTEX_STEP!r}]", step)
+            if not 0 < step <= 1 or n != mesh_code.vertex_count():
+                raise PacketError(
+                    f"Snapshot.vertices: {n} vertices at {step} cm steps: the code needs the "
+                    f"canonical mesh's {mesh_code.vertex_count()} and a step in (0, 1]"
+                )
+            try:
+                coded = mesh_code.decode(raw, step)
+            except mesh_code.MeshCodeError as exc:
+                raise PacketError(f"Snapshot.vertices: {exc}") from None
+            return cls(
+                f[0], f[1], f[2], f[3], f[4], coded, f[7], f[8], f[9], f[10], f[11], f[13], f[12]
+            )
         if len(raw) not in (6 * n, 12 * n):
             raise PacketError(
                 f"Snapshot.vertices: {len(raw)} bytes for {n} vertices "

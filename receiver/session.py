@@ -8,8 +8,10 @@ properly and the report returned as usual.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -219,6 +221,7 @@ def run_receiver(
         how = "on" if endpoint_options.get("bind") else "at"
         notify(f"waiting for a sender {how} tcp://{host}:{ports[0]} (and :{ports[1]})")
         started = time.monotonic()
+        _import_renderer_meanwhile()
         snapshot = _wait_for_session(endpoint, join_timeout_s, stop)
         if snapshot is None:
             report.ended_by = "stopped"
@@ -280,6 +283,15 @@ def run_receiver(
         report.media = endpoint.media_figures()
         endpoint.close(linger_s=LINGER_S)
     return report
+
+
+def _import_renderer_meanwhile() -> None:
+    """Import the renderer (pyrender, PyOpenGL: about 0.5 s) while the snapshot is on its way,
+    not after it came: on a thin link the first picture is that much sooner."""
+    threading.Thread(
+        target=importlib.import_module, args=("receiver.render",), name="import-renderer",
+        daemon=True,
+    ).start()  # fmt: skip
 
 
 def _wait_for_session(

@@ -49,6 +49,7 @@ from models.pose import Pose, estimate_pose
 from models.rem import RemLayout
 from models.rig import Rig, load_rig
 from models.wires import WireDeformer
+from protocol import mesh_code
 from protocol.channels import ChannelEncoder, ChannelSpec
 from protocol.constants import UINT32_MAX
 from protocol.images import decode_image
@@ -224,8 +225,9 @@ class FaceEncoder:
         pose = estimate_pose(
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
-        # Rounded as the snapshot carries them (float16), so both ends deform the same mesh.
-        vertices = pose.inverse(points).astype(np.float16)
+        # Rounded as the snapshot carries them (protocol/mesh_code.py), so both ends deform
+        # the same mesh.
+        vertices = mesh_code.quantise(pose.inverse(points))
         mesh = self.canonical.with_vertices(vertices.astype(np.float64))
         background = frame.image.copy()
         background_webp = _webp(background, BACKGROUND_QUALITY)
@@ -243,6 +245,7 @@ class FaceEncoder:
             if isinstance(self.tracker, MarkerFaceTracker)
             else "mediapipe-landmarks",
             "texture_size": side,
+            mesh_code.VERTEX_STEP: mesh_code.STEP_CM,
         }
         if self.use_rem:
             face = np.ptp(points[:, 0])
