@@ -242,14 +242,18 @@ def sound_as_asked(
     realtime: bool,
     publish: Callable[[Any], None],
     notify: Callable[[str], None],
+    budget_bps: float,
 ) -> Any:
-    """The AudioSender for ``source`` at the options' bit rate; None with --no-sound, or
-    when there is no sound to send (said in one line to ``notify``)."""
-    from sender.audio import AudioSettings, sound_for
+    """The AudioSender for ``source`` at the options' bit rate, in Opus packets as long as the
+    call's on-the-wire budget asks; None with --no-sound, or when there is no sound to send
+    (said in one line to ``notify``)."""
+    from sender.audio import AudioSettings, frame_ms_for, sound_for
 
     if args.no_sound:
         return None
-    settings = AudioSettings(bitrate=round(args.sound_kbps * 1000))
+    settings = AudioSettings(
+        bitrate=round(args.sound_kbps * 1000), frame_ms=frame_ms_for(budget_bps)
+    )
     loop = bool(getattr(args, "loop", False))
     return sound_for(source, is_camera, realtime, publish, settings, notify, loop)
 
@@ -405,8 +409,9 @@ def send(
             rest = _paused_while_alone(frames, source, endpoint, presence, stop, tell)
             where = source.path if source.path is not None else args.camera
             sound = sound_as_asked(
-                args, where, source.video.is_camera, True, endpoint.publish, tell
-            )
+                args, where, source.video.is_camera, True, endpoint.publish, tell,
+                endpoint.max_bps,
+            )  # fmt: skip
             sent = with_sound(itertools.chain(restamped(buffered), rest), sound, source.video.fps)
             report = run_sender(
                 endpoint,

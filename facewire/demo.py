@@ -159,6 +159,7 @@ def _call(
                 video.realtime,
                 endpoint.publish,
                 print,
+                endpoint.max_bps,
             )
             sent_frames = with_sound(itertools.chain(buffered, frames), sound, video.fps)
             sender = run_sender(endpoint, encoder, _kept(sent_frames, keep))

@@ -1,9 +1,10 @@
 """The receiver's sound: Opus decoding, jitter buffer, concealment, playback and lip sync.
 
 AudioFrame packets (docs/protocol.md) go into a jitter buffer keyed by their 20 ms step
-(``seq``). A thread plays one step every 20 ms: the packet if it came, else Opus's own
-packet-loss concealment for up to CONCEAL_FRAMES steps (a lost packet, or the start of the
-silence the sender left out, DTX), then silence. Steps are played on the capture clock:
+(``seq``; a 40 or 60 ms packet covers the steps from it on). A thread plays one step every
+20 ms: the packet if it came, else Opus's own packet-loss concealment for up to
+CONCEAL_FRAMES steps (a lost packet, or the start of the silence the sender left out, DTX),
+then silence. Steps are played on the capture clock:
 step s is due at ``capture_us(s) + latency``, where ``latency`` is the face's (how long after
 capture the receive loop put its pictures on screen, :attr:`RenderedFrame.latency_ms`), or
 more when the sound needs it to arrive in time (its packets wait for the video frame that
@@ -71,8 +72,13 @@ class AudioDecodeError(ValueError):
     """An Opus packet the decoder refused."""
 
 
+#: Opus packet lengths a sender may use, in 20 ms steps.
+MAX_PACKET_STEPS = 3
+
+
 class OpusDecoder:
-    """PyAV's libopus decoder: 20 ms packets in, 960 int16 samples out; codec concealment."""
+    """PyAV's libopus decoder: 20, 40 or 60 ms packets in, 960 int16 samples a 20 ms step
+    out; codec concealment 20 ms at a time."""
 
     def __init__(self) -> None:
         import av
@@ -86,32 +92,49 @@ class OpusDecoder:
         self._toc: int | None = None
 
     def decode(self, data: bytes) -> np.ndarray:
-        """The 20 ms an Opus packet holds; AudioDecodeError when it is not one."""
+        """The 20, 40 or 60 ms an Opus packet holds; AudioDecodeError when it is not one."""
         try:
             frames = self._ctx.decode(self._av.Packet(data))
         except self._av.FFmpegError as exc:
             raise AudioDecodeError(f"Opus packet of {len(data)} bytes refused: {exc}") from None
         pcm = _pcm(frames)
-        if len(pcm) != AUDIO_FRAME_SAMPLES:
+        steps, rest = divmod(len(pcm), AUDIO_FRAME_SAMPLES)
+        if rest or not 1 <= steps <= MAX_PACKET_STEPS:
             raise AudioDecodeError(
                 f"Opus packet of {len(data)} bytes holds {len(pcm)} samples, "
-                f"expected {AUDIO_FRAME_SAMPLES} (20 ms)"
+                f"expected {AUDIO_FRAME_SAMPLES} (20 ms), or twice or three times that"
             )
         self._toc = data[0]
         return pcm
 
     def conceal(self) -> np.ndarray:
         """20 ms of the codec's concealment: a packet whose only frame is empty tells libopus
-        the frame was lost (RFC 6716, 3.2.1), which it then extrapolates."""
+        the frame was lost (RFC 6716, 3.2.1), which it then extrapolates; its TOC byte is the
+        last packet's with the frame length made 20 ms."""
         if self._toc is None:
             return np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
         try:
-            pcm = _pcm(self._ctx.decode(self._av.Packet(bytes([self._toc & 0xFC]))))
+            toc = bytes([_toc_of_20_ms(self._toc)])
+            pcm = _pcm(self._ctx.decode(self._av.Packet(toc)))
         except self._av.FFmpegError:
             pcm = np.zeros(0, np.int16)
         if len(pcm) != AUDIO_FRAME_SAMPLES:
             return np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
         return pcm
+
+
+def _toc_of_20_ms(toc: int) -> int:
+    """A TOC byte (RFC 6716, 3.1) of the same mode and bandwidth, one frame of 20 ms: the
+    configuration's low bits pick the length (SILK 10/20/40/60 ms, hybrid 10/20, CELT
+    2.5/5/10/20), the two lowest bits of the byte the frame count code (0: one frame)."""
+    config, stereo = toc >> 3, toc & 0x04
+    if config < 12:  # SILK: 4 lengths a bandwidth
+        config = (config & ~3) | 1
+    elif config < 16:  # hybrid: 2
+        config = (config & ~1) | 1
+    else:  # CELT: 4
+        config |= 3
+    return (config << 3) | stereo
 
 
 def _pcm(frames: Sequence[Any]) -> np.ndarray:
@@ -294,6 +317,8 @@ class AudioPlayout:
         self._timeline = _Timeline()
         self._lock = threading.Condition()
         self._buffer: dict[int, AudioFrame] = {}
+        # The later 20 ms steps of a 40 or 60 ms packet played: (pcm, capture µs) by step.
+        self._decoded: dict[int, tuple[np.ndarray, int]] = {}
         self._transit: list[int] = []  # capture to arrival, µs, recent packets
         self._next: int | None = None  # the step to play next (None: idle)
         self._base: tuple[int, int, int] = (0, 0, 0)  # (step, its capture µs, its local due µs)
@@ -325,13 +350,16 @@ class AudioPlayout:
                 logger.info("sound starts again at step %d (was at %d)", packet.seq, nxt)
                 report.restarts += 1
                 self._buffer.clear()
+                self._decoded.clear()
                 self._next = None
                 nxt = None
             if nxt is not None and packet.seq < nxt:
                 report.late += 1
                 return
-            if packet.seq in self._buffer or (
-                nxt is not None and packet.seq > nxt + MAX_AHEAD_FRAMES
+            if (
+                packet.seq in self._buffer
+                or packet.seq in self._decoded
+                or (nxt is not None and packet.seq > nxt + MAX_AHEAD_FRAMES)
             ):
                 report.dropped += 1
                 return
@@ -377,18 +405,28 @@ class AudioPlayout:
         on the device; True when it was."""
         with self._lock:
             packet = self._buffer.pop(step, None)
+            decoded = self._decoded.pop(step, None)
             self._next = step + 1
         report = self.report
         pcm: np.ndarray | None = None
-        if packet is not None:
+        stamp: int | None = None  # the capture time the step's packet gives it
+        if decoded is not None:
+            pcm, stamp = decoded
+        elif packet is not None:
             try:
-                pcm = self._decoder.decode(packet.data)
-                report.played += 1
-                self._missing = 0
+                whole = self._decoder.decode(packet.data)
+                pcm, stamp = whole[:AUDIO_FRAME_SAMPLES], packet.capture_us
+                with self._lock:
+                    for i in range(1, len(whole) // AUDIO_FRAME_SAMPLES):
+                        part = whole[i * AUDIO_FRAME_SAMPLES : (i + 1) * AUDIO_FRAME_SAMPLES]
+                        self._decoded[step + i] = (part, stamp + i * FRAME_US)
             except AudioDecodeError as exc:
                 logger.debug("%s", exc)
                 report.malformed += 1
-        if pcm is None:
+        if pcm is not None:
+            report.played += 1
+            self._missing = 0
+        else:
             self._missing += 1
             if self._missing <= CONCEAL_FRAMES:
                 pcm = self._decoder.conceal()
@@ -397,21 +435,21 @@ class AudioPlayout:
                 pcm = np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
                 report.silent += 1
         shorten = (
-            packet is not None
-            and due_us - packet.capture_us - self._latency() > CATCH_UP_US
+            stamp is not None
+            and due_us - stamp - self._latency() > CATCH_UP_US
             and float(np.sqrt(np.mean(pcm.astype(np.float64) ** 2))) < QUIET_RMS
         )
-        self._timeline.put(run_us, pcm, packet.capture_us if packet is not None else None)
+        self._timeline.put(run_us, pcm, stamp)
         if shorten:
             report.shortened += 1
             return True
         self.sink.write(pcm)
         played = self._clock() + self.sink.latency_us
         face = self._face_latency()
-        if packet is not None and face is not None and len(report.latency_us) < MAX_SAMPLES:
-            report.latency_us.append((played - packet.capture_us, face))
+        if stamp is not None and face is not None and len(report.latency_us) < MAX_SAMPLES:
+            report.latency_us.append((played - stamp, face))
         with self._lock:
-            if self._missing >= RESYNC_FRAMES and not self._buffer:
+            if self._missing >= RESYNC_FRAMES and not self._buffer and not self._decoded:
                 self._next = None  # a pause: the next run chooses its latency again
         return False
 

@@ -1,6 +1,7 @@
 """The sender's sound: capture (a file's audio track or a microphone), Opus, AudioFrame packets.
 
-Sound is Opus at 48 kHz mono in 20 ms frames (docs/protocol.md, AudioFrame), coded through
+Sound is Opus at 48 kHz mono in 20, 40 or 60 ms packets (docs/protocol.md, AudioFrame: the
+longer ones where the budget is thin, :func:`frame_ms_for`), coded through
 PyAV's libopus for speech: about 12 kbit/s, in-band FEC (each packet also carries a coarse
 copy of the one before), tuned for the loss expected. PyAV's libopus wrapper has no DTX
 switch, so the sender does it: once the input has been silent for a moment, frames are
@@ -41,6 +42,21 @@ SILENCE_DBFS = -55.0
 DTX_HANGOVER_FRAMES = 10
 #: Bit rates accepted, bit/s (Opus's own range is 6 to 510 kbit/s).
 MIN_BITRATE, MAX_BITRATE = 6_000, 128_000
+#: Opus packet lengths, ms, and the budgets (bit/s, on the wire) at or under which the longer
+#: ones are used: each packet costs its AudioFrame header (13 bytes) and a place in a
+#: datagram, 5.6 kbit/s at 20 ms, 1.9 at 60; a longer packet waits longer to fill (40 ms more
+#: at 60 ms), so the sound comes later behind the lips: only where the bits matter more.
+FRAME_MS = (20, 40, 60)
+LONGER_FRAMES_AT_BPS = {40: 24_000.0, 60: 16_000.0}
+
+
+def frame_ms_for(budget_bps: float) -> int:
+    """The Opus packet length for a call with this on-the-wire budget."""
+    if budget_bps <= LONGER_FRAMES_AT_BPS[60]:
+        return 60
+    if budget_bps <= LONGER_FRAMES_AT_BPS[40]:
+        return 40
+    return 20
 
 
 class AudioError(RuntimeError):
@@ -55,12 +71,14 @@ class AudioSettings:
     fec : in-band forward error correction
     expected_loss : percent of packets the link is expected to lose (sizes the FEC)
     dtx : leave silent frames out
+    frame_ms : each packet's length, 20, 40 or 60 ms
     """
 
     bitrate: int = 12_000
     fec: bool = True
     expected_loss: int = 5
     dtx: bool = True
+    frame_ms: int = 20
 
     def __post_init__(self) -> None:
         if not MIN_BITRATE <= self.bitrate <= MAX_BITRATE:
@@ -69,12 +87,15 @@ class AudioSettings:
             )
         if not 0 <= self.expected_loss <= 100:
             raise AudioError(f"expected loss {self.expected_loss}% outside [0, 100]")
+        if self.frame_ms not in FRAME_MS:
+            raise AudioError(f"Opus packets of {self.frame_ms} ms: expected one of {FRAME_MS}")
 
 
 @dataclass(frozen=True)
 class CodedFrame:
-    """One Opus packet: ``seq`` (20 ms steps), its first decoded sample's input position
-    (``sample``, 48 kHz samples; the coder's look-ahead makes the first one negative)."""
+    """One Opus packet: ``seq`` (20 ms steps: a longer packet covers the steps from it on),
+    its first decoded sample's input position (``sample``, 48 kHz samples; the coder's
+    look-ahead makes the first one negative)."""
 
     seq: int
     sample: int
@@ -83,7 +104,8 @@ class CodedFrame:
 
 
 class OpusEncoder:
-    """Opus through PyAV, 20 ms frames of 48 kHz mono int16 in, packets out in order."""
+    """Opus through PyAV, 20 ms frames of 48 kHz mono int16 in, packets of
+    ``settings.frame_ms`` out in order (PyAV gathers the input into them)."""
 
     def __init__(self, settings: AudioSettings) -> None:
         import av
@@ -100,13 +122,14 @@ class OpusEncoder:
         ctx.time_base = fractions.Fraction(1, AUDIO_RATE)
         ctx.options = {
             "application": "voip",
-            "frame_duration": str(AUDIO_FRAME_MS),
+            "frame_duration": str(settings.frame_ms),
             "fec": "1" if settings.fec else "0",
             "packet_loss": str(settings.expected_loss),
             "vbr": "on",
         }
         ctx.open()
         self._ctx = ctx
+        self._steps = settings.frame_ms // AUDIO_FRAME_MS
         self._frame = av.AudioFrame
         self._pts = 0
         self._silent = 0  # silent frames in a row (input side)
@@ -135,10 +158,11 @@ class OpusEncoder:
             sample = int(packet.pts)
             # Packet k decodes to input [k * 960 - d, ...), d the coder's look-ahead (312).
             seq = round(sample / AUDIO_FRAME_SAMPLES)
-            # The packet decodes to input [sample, sample + 960): silent when the input
-            # frames it spans were both silent.
+            # The packet decodes to input [sample, sample + steps * 960): silent when the
+            # input frames it spans were all silent.
             idx = max(0, sample // AUDIO_FRAME_SAMPLES)
-            silent = all(self._silence[idx : idx + 2]) if self._silence[idx:] else False
+            spans = self._steps + 1
+            silent = all(self._silence[idx : idx + spans]) if self._silence[idx:] else False
             out.append(CodedFrame(seq, sample, bytes(packet), silent))
         return out
 

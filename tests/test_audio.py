@@ -20,10 +20,18 @@ from receiver.audio import (
     AudioPlayout,
     NullSink,
     OpusDecoder,
+    _toc_of_20_ms,
     mux_audio,
     read_audio,
 )
-from sender.audio import AudioSender, AudioSettings, demo_speech_path, open_track, sound_for
+from sender.audio import (
+    AudioSender,
+    AudioSettings,
+    demo_speech_path,
+    frame_ms_for,
+    open_track,
+    sound_for,
+)
 from sender.capture import demo_clip_path
 
 FIXTURES = Path(__file__).parent / "fixtures" / "packets"
@@ -92,6 +100,31 @@ def test_capture_times_follow_the_video_clock(speech) -> None:
         assert p.capture_us == pytest.approx(p.seq * 20_000 - 6_500, abs=50)
 
 
+@pytest.mark.parametrize("frame_ms", [40, 60])
+def test_longer_packets_cover_their_steps(speech, frame_ms: int) -> None:
+    """A thin budget's 40 or 60 ms packets: each one's seq is its first 20 ms step, the
+    capture times stay on the clock, and the same speech takes 2 or 3 times fewer packets."""
+    longer = coded_speech(frame_ms=frame_ms)
+    steps = frame_ms // 20
+    assert all(p.seq % steps == 0 for p in longer)
+    for p in longer:
+        assert p.capture_us == pytest.approx(p.seq * 20_000 - 6_500, abs=50)
+    assert len(longer) <= len(speech) / steps + 10
+    # What a datagram carries besides Opus (the AudioFrame's 13 bytes a packet) shrinks.
+    assert 13 * len(longer) < 13 * len(speech) * 0.6
+
+
+def test_the_budget_sets_the_packet_length() -> None:
+    assert [frame_ms_for(b) for b in (64_000, 32_000, 24_000, 20_000, 16_000, 8_000)] == [
+        20,
+        20,
+        40,
+        40,
+        60,
+        60,
+    ]
+
+
 # --- playout ---------------------------------------------------------------------------------
 
 
@@ -133,6 +166,32 @@ def test_a_lost_packet_is_concealed_by_the_codec(speech) -> None:
     assert np.array_equal(a[:at], b[:at])
     whole.discard()
     lost.discard()
+
+
+def test_a_60_ms_packet_plays_its_three_steps_and_its_loss_is_concealed() -> None:
+    packets = [p for p in coded_speech(frame_ms=60) if 330 <= p.seq < 380]
+    assert len(packets) == 17  # steps 330 to 380
+    whole = play(packets)
+    lost = play([p for p in packets if p.seq != 354])
+    assert whole.report.played == 51 and whole.report.malformed == 0
+    assert lost.report.played == 48 and lost.report.concealed == whole.report.concealed + 3
+    a, b = whole.recorded(0, 30.0), lost.recorded(0, 30.0)
+    talking = a[: 45 * AUDIO_FRAME_SAMPLES].astype(float)
+    assert np.sqrt(np.mean(talking**2)) > 300  # the voice, not silence
+    at = 24 * AUDIO_FRAME_SAMPLES  # the lost packet's 60 ms
+    gap = b[at : at + 3 * AUDIO_FRAME_SAMPLES].astype(float)
+    assert np.sqrt(np.mean(gap[:AUDIO_FRAME_SAMPLES] ** 2)) > 0.1 * np.sqrt(np.mean(talking**2))
+    assert np.array_equal(a[:at], b[:at])
+    whole.discard()
+    lost.discard()
+
+
+def test_concealment_asks_for_20_ms_whatever_the_packets_length() -> None:
+    """The lost-frame packet's TOC keeps the mode and the bandwidth (RFC 6716, 3.1)."""
+    assert _toc_of_20_ms(0x58) == 0x48  # SILK wideband 60 ms -> 20 ms
+    assert _toc_of_20_ms(0x53) == 0x48  # SILK wideband 40 ms, code 3 -> one frame
+    assert _toc_of_20_ms(0x60) == 0x68  # hybrid super-wideband 10 ms -> 20 ms
+    assert _toc_of_20_ms(0xF8 | 0x04) == 0xFC  # CELT fullband 20 ms, stereo stays
 
 
 def test_a_run_started_too_late_catches_up_in_the_pauses(speech) -> None:
