@@ -124,6 +124,9 @@ def main() -> int:
     )
     p.add_argument("--sound", action="store_true", help="send the clip's sound too")
     p.add_argument("--plain", action="store_true", help="no CURVE (both ends --plain)")
+    p.add_argument(
+        "--max-kbps", type=float, metavar="N", help="the sender's --max-kbps (default: its own)"
+    )
     p.add_argument("--json", metavar="OUT.json", help="write every run's figures")
     args = p.parse_args()
     # SIGTERM ends the runs as Ctrl-C does: the calls are stopped and the namespaces deleted.
@@ -145,9 +148,11 @@ def main() -> int:
     for clip in clips:
         name = "bundled" if clip is None or clip.stem == "demo_clip" else clip.stem.split("_")[0]
         for rate in rates:
+            budget = () if args.max_kbps is None else ("--max-kbps", f"{args.max_kbps:g}")
             r = measure_call(
-                clip, args.seconds, rate, args.sound, settle_s=args.settle, encrypted=not args.plain
-            )
+                clip, args.seconds, rate, args.sound, budget,
+                settle_s=args.settle, encrypted=not args.plain,
+            )  # fmt: skip
             runs.append(r)
             print(row(name, r))
             print(details(r), flush=True)

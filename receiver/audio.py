@@ -60,6 +60,9 @@ CATCH_UP_US = FRAME_US
 #: ... by leaving out a step this quiet (RMS, int16; about -40 dBFS): a pause between words
 #: is 20 ms shorter on the device, and the recording keeps it.
 QUIET_RMS = 330.0
+#: A packet that comes later than its step (capture to arrival under this, µs) makes the
+#: playing run wait 20 ms more (a step of the codec's concealment on the device).
+MAX_STRETCHED_US = 1_000_000
 #: Recent packets (capture to arrival) and pictures (capture to screen) that set the latency.
 WINDOW = 100
 #: Audio latency samples kept for the figures (about 3 minutes of sound).
@@ -214,6 +217,7 @@ class AudioReport:
     concealed: int = 0  # steps the codec made up (loss, or the start of DTX silence)
     silent: int = 0  # steps of silence after CONCEAL_FRAMES
     shortened: int = 0  # quiet steps left out on the device to bring the latency down
+    stretched: int = 0  # steps of concealment put in on the device after a late packet
     late: int = 0  # packets that came after their step was played
     dropped: int = 0  # too far ahead, duplicates
     malformed: int = 0  # packets the Opus decoder refused (concealed instead)
@@ -236,6 +240,7 @@ class AudioReport:
             "concealed": self.concealed,
             "silent": self.silent,
             "shortened": self.shortened,
+            "stretched": self.stretched,
             "late": self.late,
             "dropped": self.dropped,
             "malformed": self.malformed,
@@ -323,6 +328,7 @@ class AudioPlayout:
         self._next: int | None = None  # the step to play next (None: idle)
         self._base: tuple[int, int, int] = (0, 0, 0)  # (step, its capture µs, its local due µs)
         self._missing = 0  # steps in a row without a packet
+        self._stretch = 0  # late packets not yet answered by a step of concealment
         self._stop = False
         #: (frame seq, capture µs) of video frames: where the recording's frames were captured.
         self.video_anchors: list[tuple[int, int]] = []
@@ -354,7 +360,13 @@ class AudioPlayout:
                 self._next = None
                 nxt = None
             if nxt is not None and packet.seq < nxt:
+                # Later than the run's latency allows: the run waits a step longer from now
+                # on, and the next run's latency counts this packet's transit.
                 report.late += 1
+                self._transit.append(arrival - packet.capture_us)
+                del self._transit[:-WINDOW]
+                if arrival - packet.capture_us < MAX_STRETCHED_US:
+                    self._stretch += 1
                 return
             if (
                 packet.seq in self._buffer
@@ -388,12 +400,21 @@ class AudioPlayout:
                     capture = self._buffer[first].capture_us
                     self._next = first
                     self._base = (first, capture, capture + self._latency())
+                    self._stretch = 0  # the latency just chosen counts the late ones
                 step = self._next
                 base_step, base_capture, base_due = self._base
                 due = base_due + (step - base_step) * FRAME_US
+                stretch = self._stretch > 0
+                if stretch:  # this step's place gets 20 ms of concealment; the run moves on
+                    self._stretch -= 1
+                    self._base = (base_step, base_capture, base_due + FRAME_US)
             wait = due - self.sink.latency_us - self._clock()
             if wait > 0:
                 time.sleep(wait / 1e6)
+            if stretch:
+                self.sink.write(self._decoder.conceal())
+                self.report.stretched += 1
+                continue
             if self._play(step, base_capture + (step - base_step) * FRAME_US, due):
                 with self._lock:  # the rest of the run plays a step earlier
                     self._base = (base_step, base_capture, base_due - FRAME_US)

@@ -215,6 +215,30 @@ def test_a_run_started_too_late_catches_up_in_the_pauses(speech) -> None:
     played.discard()
 
 
+def test_packets_that_come_late_make_the_run_wait_longer(speech) -> None:
+    """Half-way through a second of speech the packets start taking 30 ms more than the run's
+    latency allows (a path that got slower): each late one makes the run wait a step longer
+    (concealment on the device), so after two the rest are in time again; before, all were
+    late until the sound had been missing 200 ms and a new run began."""
+    packets = talk(speech)
+    playout = AudioPlayout(NullSink(), lambda: None)
+    start = time.monotonic_ns() // 1000 + 20_000
+    shift = start - packets[0].capture_us
+    for p in packets:
+        transit = 20_000 if p.seq < 355 else MIN_LATENCY_US + 30_000
+        arrive = p.capture_us + shift + transit
+        time.sleep(max(0.0, (arrive - time.monotonic_ns() // 1000) / 1e6))
+        playout.push(AudioFrame(p.seq, p.capture_us + shift, p.data))
+    time.sleep(0.6)
+    playout.close()
+    report = playout.report
+    print(f"late {report.late}, stretched {report.stretched}, played {report.played}")
+    assert 1 <= report.late <= 4  # 30 ms more: a few steps of concealment catch up with it
+    assert report.stretched == report.late
+    assert report.played == len(packets) - report.late
+    playout.discard()
+
+
 def test_a_malformed_opus_packet_is_counted_and_concealed(speech) -> None:
     packets = talk(speech)[:20]
     bad = AudioFrame(packets[5].seq, packets[5].capture_us, bytes([0x4B]) + b"\xff" * 3)
