@@ -12,7 +12,7 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
   a full queue drops; loss on a link with no queue is the link's own, which sending less does
   not cure; loss counted over the last LOSS_WINDOW_S, so one lost datagram among the few of a
   report interval is not taken for 20%): the rate falls to DECREASE times what the receiver
-  got over the last report interval (GCC's decrease), at most once per DECREASE_HOLD_S, so
+  got over the last RATE_WINDOW_S (GCC's decrease), at most once per DECREASE_HOLD_S, so
   one queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
@@ -38,6 +38,9 @@ QUEUE_HIGH_MS = 40.0
 QUEUE_LOW_MS = 20.0
 LOSS_HIGH = 0.10
 LOSS_WINDOW_S = 2.0
+#: What the receiver got is measured over about this long: one report interval's bytes come
+#: in bursts (tbf's bucket, a datagram and a patch fragment together) and read high.
+RATE_WINDOW_S = 1.0
 LOSS_LOW = 0.02
 DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
@@ -86,6 +89,7 @@ class RateController:
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
         self._prev: tuple[float, int, int, int] | None = None  # arrival s, highest, rx, bytes
         self._history: deque[tuple[float, int, int]] = deque()  # arrival s, highest, received
+        self._bytes: deque[tuple[float, int]] = deque()  # arrival s, bytes received
         self._last_decrease = -math.inf
         self._last_update: float | None = None
 
@@ -139,7 +143,13 @@ class RateController:
             self.lossy = self.losing = False
         if loss > 0 and self.lossy:
             self.losing = True
-        received_bps = ((received_bytes - prev[3]) & 0xFFFFFFFF) * 8.0 / span
+        if not self._bytes:
+            self._bytes.append((prev[0], prev[3]))
+        self._bytes.append((arrival_s, received_bytes))
+        while len(self._bytes) > 2 and arrival_s - self._bytes[1][0] >= RATE_WINDOW_S:
+            self._bytes.popleft()
+        since, bytes_then = self._bytes[0]
+        received_bps = ((received_bytes - bytes_then) & 0xFFFFFFFF) * 8.0 / (arrival_s - since)
         self.last = Estimate(queue_ms, window_loss, received_bps)
         self._update(now, queue_ms, window_loss, received_bps)
 

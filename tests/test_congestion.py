@@ -143,6 +143,23 @@ def test_growing_queue_brings_the_rate_down() -> None:
     assert steps[-1].queue_ms > 700
 
 
+@pytest.mark.parametrize("phase", [0, 1])
+def test_a_cut_follows_what_the_receiver_got_over_a_second(phase: int) -> None:
+    """The receiver stamps datagrams when its loop reads them: a loop busy drawing a frame
+    reads some 100 ms late, so one report's span between newest arrivals reads short and its
+    rate high (here every other interval: 1.7 times the link's). Over a second of reports the
+    cut still lands under what the link carries."""
+    controller = RateController()
+
+    def read_late(t: float) -> float:
+        late = 0.1 if int((t - T0) / 0.25) % 2 == phase else 0.0
+        return 0.05 + late + max(0.0, t - T0 - 2) * 0.1
+
+    steps = simulate(controller, 4, delay=read_late)
+    cut = next(s for s in steps if s.decreases)
+    assert cut.rate_bps <= 0.85 * RECEIVED_BPS * 1.1
+
+
 def test_queue_under_the_high_mark_holds_the_rate() -> None:
     """30 ms of queue, between 20 and 40: neither up nor down."""
     controller = RateController()
