@@ -24,10 +24,14 @@ sliced where need be, take what the budget leaves.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import socket
+import struct
+import sys
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -92,6 +96,13 @@ BUCKET_S = 0.25
 #: Most datagrams read per call (bounds the time spent under a flood).
 _MAX_READ = 256
 _RECV_BYTES = 2048  # more than any datagram we send: a longer one is not ours
+#: Linux's SO_TIMESTAMPNS (asm-generic/socket.h; Python names only SO_TIMESTAMP): the kernel
+#: stamps each datagram's arrival, so the reports' arrival times do not wait for the
+#: receiver's loop (a frame being drawn would look like a queue on the link to the rate
+#: control). Its control message holds a struct timespec on CLOCK_REALTIME.
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@ll")
+_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 
 
 def frames_per_datagram(budget_bps: float, fps: float, lossy: bool = False) -> int:
@@ -114,10 +125,13 @@ def _address(host: str, port: int) -> tuple[str, int]:
 
 def _udp_socket(host: str, port: int, bind: bool) -> tuple[socket.socket, tuple[str, int] | None]:
     """A non-blocking UDP socket: bound on ``host:port`` (``bind``), else on any free port with
-    ``host:port`` as the peer to open the path to."""
+    ``host:port`` as the peer to open the path to; the kernel stamps arrivals where it can."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sock.setblocking(False)
+        if sys.platform.startswith("linux"):
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         if bind:
             sock.bind(("0.0.0.0" if host in ("*", "") else host, port))
             return sock, None
@@ -177,17 +191,23 @@ class _Path:
         self.counts.wire_bytes_sent += len(datagram) + IP_UDP_BYTES
         return True
 
-    def _recv(self) -> tuple[bytes, tuple[str, int]] | None:
+    def _recv(self) -> tuple[bytes, tuple[str, int], float] | None:
+        """(datagram, where from, seconds since it arrived: 0 where the kernel did not say)."""
         try:
-            data, address = self.sock.recvfrom(_RECV_BYTES)
+            data, ancillary, _, address = self.sock.recvmsg(_RECV_BYTES, _ANCILLARY_BYTES)
         except (BlockingIOError, InterruptedError):
             return None
         except OSError as exc:  # an ICMP error queued on the socket
             logger.debug("%s: %s", self.side, exc)
-            return b"", ("", 0)
+            return b"", ("", 0), 0.0
         self.counts.datagrams_received += 1
         self.counts.wire_bytes_received += len(data) + IP_UDP_BYTES
-        return data, address
+        age = 0.0
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(value) >= 16:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(value)
+                age = max(0.0, time.time() - (seconds + nanoseconds / 1e9))
+        return data, address, age
 
     def _open(self, opener: Opener, data: bytes) -> tuple[int, list[bytes]] | None:
         """(packet index, elements) of an authentic datagram, else None (counted by why)."""
@@ -271,7 +291,7 @@ class SenderMediaPath(_Path):
             got = self._recv()
             if got is None:
                 return
-            data, address = got
+            data, address, _ = got
             key_id = key_id_of(data)
             peer = None if key_id is None else self._by_key.get(key_id)
             if peer is None:
@@ -531,7 +551,7 @@ class ReceiverMediaPath(_Path):
             got = self._recv()
             if got is None:
                 break
-            data, address = got
+            data, address, age = got
             opened = self._open(self._opener, data)
             if opened is None:
                 continue
@@ -539,7 +559,7 @@ class ReceiverMediaPath(_Path):
             fresh = not self.live(now)
             self._peer, self.last_heard = address, now
             if index == self._opener.window.highest:  # a late one names no newer datagram
-                self._highest, self._arrival_ms = index, now_ms
+                self._highest, self._arrival_ms = index, now_ms - round(age * 1000)
             self._received += 1
             self._received_bytes += len(data)
             if fresh:

@@ -488,6 +488,20 @@ def test_reports_reach_the_senders_controller(call: Call) -> None:
     assert call.sender.budget_bps(call.t, 1e6) == peer.controller.rate_bps
 
 
+def test_arrival_is_when_the_datagram_came_not_when_the_loop_read_it(open_call: Call) -> None:
+    """A receiver busy drawing reads its socket 150 ms after a datagram came: the report says
+    when it came (the kernel's stamp), so the rate control sees no queue on the link."""
+    call = open_call
+    call.sender.send(pack([delta(0)]), call.t)
+    call.relay.pump()
+    came_ms = call.ms
+    time.sleep(0.15)
+    call.t += 0.15  # the receiver's loop comes back now
+    call.packets += call.receiver.read(call.t, call.ms)
+    assert call.packets == [delta(0)]
+    assert came_ms - 20 <= call.receiver._arrival_ms <= came_ms + 40
+
+
 @pytest.mark.timeout(20)
 def test_replayed_and_forged_datagrams_are_dropped(call: Call) -> None:
     call.open()
