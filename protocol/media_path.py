@@ -600,7 +600,11 @@ class ReceiverMediaPath(_Path):
             return
         if self.live(now):
             if now - self._last_report >= REPORT_INTERVAL_S:
-                self._last_report = now
+                # On the interval's beat, not from when the loop came by (it comes by when a
+                # datagram does: 3.5 reports a second), and never two at once after a stall.
+                self._last_report = max(
+                    self._last_report + REPORT_INTERVAL_S, now - REPORT_INTERVAL_S / 2
+                )
                 report = Report(self._highest, self._arrival_ms, self._received,
                                 self._received_bytes)  # fmt: skip
                 self._send(pack([bytes(report)]))

@@ -488,6 +488,17 @@ def test_reports_reach_the_senders_controller(call: Call) -> None:
     assert call.sender.budget_bps(call.t, 1e6) == peer.controller.rate_bps
 
 
+def test_four_reports_a_second_whenever_the_loop_comes_by(open_call: Call) -> None:
+    """A receiver whose loop comes by once a datagram (every 67 ms) still reports on the
+    250 ms beat: 16 in 4 s, not one every fourth datagram (15)."""
+    call = open_call
+    sent = len(call.to_sender)
+    for i in range(60):
+        call.sender.send(pack([delta(i)]), call.t)
+        call.step(1 / 15)
+    assert len(call.to_sender) - sent in (16, 17)
+
+
 def test_arrival_is_when_the_datagram_came_not_when_the_loop_read_it(open_call: Call) -> None:
     """A receiver busy drawing reads its socket 150 ms after a datagram came: the report says
     when it came (the kernel's stamp), so the rate control sees no queue on the link."""
