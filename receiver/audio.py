@@ -63,6 +63,11 @@ QUIET_RMS = 330.0
 #: A packet that comes later than its step (capture to arrival under this, µs) makes the
 #: playing run wait 20 ms more (a step of the codec's concealment on the device).
 MAX_STRETCHED_US = 1_000_000
+#: Until this many sound packets have come, the latency also follows the video frames'
+#: transit plus SOUND_AFTER_PICTURE_US: a sound packet leaves with the video frame after its
+#: 20 ms (up to a frame later at 30 fps, and its own 20 ms to fill).
+OWN_TRANSITS = 25
+SOUND_AFTER_PICTURE_US = FRAME_US + 33_000
 #: Recent packets (capture to arrival) and pictures (capture to screen) that set the latency.
 WINDOW = 100
 #: Audio latency samples kept for the figures (about 3 minutes of sound).
@@ -325,6 +330,7 @@ class AudioPlayout:
         # The later 20 ms steps of a 40 or 60 ms packet played: (pcm, capture µs) by step.
         self._decoded: dict[int, tuple[np.ndarray, int]] = {}
         self._transit: list[int] = []  # capture to arrival, µs, recent packets
+        self._video_transit: list[int] = []  # the same of recent video frames
         self._next: int | None = None  # the step to play next (None: idle)
         self._base: tuple[int, int, int] = (0, 0, 0)  # (step, its capture µs, its local due µs)
         self._missing = 0  # steps in a row without a packet
@@ -337,10 +343,16 @@ class AudioPlayout:
 
     # --- receive side (the receive loop's thread) ------------------------------------------
 
-    def frame(self, seq: int, capture_us: int) -> None:
-        """A video frame the receiver decoded: where the recording's frame ``seq`` was taken."""
+    def frame(self, seq: int, capture_us: int, arrival_us: int | None = None) -> None:
+        """A video frame the receiver decoded: where the recording's frame ``seq`` was taken;
+        ``arrival_us``: when it came, which tells the sound what the link does before its own
+        packets have (a lossy link's repeats bring some a datagram late)."""
         if len(self.video_anchors) < MAX_ANCHORS:
             self.video_anchors.append((seq, capture_us))
+        if arrival_us is not None:
+            with self._lock:
+                self._video_transit.append(arrival_us - capture_us)
+                del self._video_transit[:-WINDOW]
 
     def push(self, packet: AudioFrame | KeyFrame, arrival_us: int | None = None) -> None:
         if isinstance(packet, KeyFrame):
@@ -384,7 +396,11 @@ class AudioPlayout:
 
     def _latency(self) -> int:
         """How long after capture the next run of sound is played, µs."""
-        own = max(MIN_LATENCY_US, max(self._transit, default=0) + FRAME_US + MARGIN_US)
+        if len(self._transit) >= OWN_TRANSITS:
+            slowest = max(self._transit)
+        else:  # the pictures' transit, and what a sound packet waits for on top of it
+            slowest = max(self._transit + [t + SOUND_AFTER_PICTURE_US for t in self._video_transit])
+        own = max(MIN_LATENCY_US, slowest + FRAME_US + MARGIN_US)
         face = self._face_latency()
         return max(own, face if face is not None else own)
 
@@ -610,8 +626,8 @@ class CallSound:
         self.first_seq = first_seq
         self.fps = fps
 
-    def frame(self, seq: int, capture_us: int) -> None:
-        self.playout.frame(seq, capture_us)
+    def frame(self, seq: int, capture_us: int, arrival_us: int | None = None) -> None:
+        self.playout.frame(seq, capture_us, arrival_us)
 
     def push(self, packet: AudioFrame, arrival_us: int) -> None:
         if self._no_device is not None:

@@ -399,7 +399,7 @@ def _receive_session(
                         else:
                             playout.push(values, received, broken, timed)
                             if audio is not None:
-                                audio.frame(values.seq, values.capture_us)
+                                audio.frame(values.seq, values.capture_us, received)
                             report.arrival_ms.append((received - values.capture_us) / 1000.0)
                             if timed and lateness.late(received, values.capture_us):
                                 endpoint.note_late_frame()

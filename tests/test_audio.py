@@ -239,6 +239,28 @@ def test_packets_that_come_late_make_the_run_wait_longer(speech) -> None:
     playout.discard()
 
 
+def test_the_first_words_follow_the_pictures_transit(speech) -> None:
+    """Before its own packets have come, the sound takes its latency from the video frames'
+    capture-to-arrival (up to 150 ms: a lossy link's repeats bring some a datagram late): its
+    first words are in time though the first packet came in 100 ms and some later ones take
+    190, where the first packet's transit and the least latency (140 ms) made those late."""
+    packets = talk(speech)[:20]
+    playout = AudioPlayout(NullSink(), lambda: None)
+    start = time.monotonic_ns() // 1000 + 20_000
+    shift = start - packets[0].capture_us
+    for i in range(30):  # a second of pictures before the voice
+        capture = start - 1_000_000 + i * 33_333
+        playout.frame(i, capture, capture + 150_000)
+    for p in packets:
+        arrive = p.capture_us + shift + (190_000 if p.seq % 4 == 3 else 100_000)
+        time.sleep(max(0.0, (arrive - time.monotonic_ns() // 1000) / 1e6))
+        playout.push(AudioFrame(p.seq, p.capture_us + shift, p.data))
+    time.sleep(0.5)
+    playout.close()
+    assert playout.report.late == 0 and playout.report.played == 20
+    playout.discard()
+
+
 def test_a_malformed_opus_packet_is_counted_and_concealed(speech) -> None:
     packets = talk(speech)[:20]
     bad = AudioFrame(packets[5].seq, packets[5].capture_us, bytes([0x4B]) + b"\xff" * 3)
