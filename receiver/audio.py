@@ -64,10 +64,12 @@ QUIET_RMS = 330.0
 #: playing run wait 20 ms more (a step of the codec's concealment on the device).
 MAX_STRETCHED_US = 1_000_000
 #: Until this many sound packets have come, the latency also follows the video frames'
-#: transit plus SOUND_AFTER_PICTURE_US: a sound packet leaves with the video frame after its
-#: 20 ms (up to a frame later at 30 fps, and its own 20 ms to fill).
+#: median transit plus SOUND_AFTER_PICTURE_US (a sound packet leaves with the video frame after
+#: its 20 ms: up to a frame later at 30 fps, and its own 20 ms to fill) and REPEAT_US (on a
+#: lossy link a lost datagram's packets come again in the next one, a frame later).
 OWN_TRANSITS = 25
 SOUND_AFTER_PICTURE_US = FRAME_US + 33_000
+REPEAT_US = 33_000
 #: Recent packets (capture to arrival) and pictures (capture to screen) that set the latency.
 WINDOW = 100
 #: Audio latency samples kept for the figures (about 3 minutes of sound).
@@ -396,10 +398,12 @@ class AudioPlayout:
 
     def _latency(self) -> int:
         """How long after capture the next run of sound is played, µs."""
-        if len(self._transit) >= OWN_TRANSITS:
-            slowest = max(self._transit)
-        else:  # the pictures' transit, and what a sound packet waits for on top of it
-            slowest = max(self._transit + [t + SOUND_AFTER_PICTURE_US for t in self._video_transit])
+        slowest = max(self._transit, default=0)
+        if len(self._transit) < OWN_TRANSITS and self._video_transit:
+            # The pictures' typical transit (their median: a stalled frame says nothing of
+            # the link), what a sound packet waits for on top of it, and a repeat's datagram.
+            pictures = int(np.median(self._video_transit)) + SOUND_AFTER_PICTURE_US + REPEAT_US
+            slowest = max(slowest, pictures)
         own = max(MIN_LATENCY_US, slowest + FRAME_US + MARGIN_US)
         face = self._face_latency()
         return max(own, face if face is not None else own)

@@ -241,16 +241,17 @@ def test_packets_that_come_late_make_the_run_wait_longer(speech) -> None:
 
 def test_the_first_words_follow_the_pictures_transit(speech) -> None:
     """Before its own packets have come, the sound takes its latency from the video frames'
-    capture-to-arrival (up to 150 ms: a lossy link's repeats bring some a datagram late): its
-    first words are in time though the first packet came in 100 ms and some later ones take
-    190, where the first packet's transit and the least latency (140 ms) made those late."""
+    capture-to-arrival (100 ms; a stalled one of 1.5 s changes nothing) and what sound waits
+    for on top of it: its first words are in time though the first packet came in 100 ms and
+    some later ones take 190 (a lossy link's repeats), where the first packet's transit and the
+    least latency (140 ms) made those late."""
     packets = talk(speech)[:20]
-    playout = AudioPlayout(NullSink(), lambda: None)
+    playout = AudioPlayout(NullSink(), lambda: 50_000)
     start = time.monotonic_ns() // 1000 + 20_000
     shift = start - packets[0].capture_us
     for i in range(30):  # a second of pictures before the voice
         capture = start - 1_000_000 + i * 33_333
-        playout.frame(i, capture, capture + 150_000)
+        playout.frame(i, capture, capture + (1_500_000 if i == 20 else 100_000))
     for p in packets:
         arrive = p.capture_us + shift + (190_000 if p.seq % 4 == 3 else 100_000)
         time.sleep(max(0.0, (arrive - time.monotonic_ns() // 1000) / 1e6))
@@ -258,6 +259,8 @@ def test_the_first_words_follow_the_pictures_transit(speech) -> None:
     time.sleep(0.5)
     playout.close()
     assert playout.report.late == 0 and playout.report.played == 20
+    latencies = [audio for audio, _ in playout.report.latency_us]
+    assert max(latencies) < 300_000  # not the stalled frame's 1.5 s
     playout.discard()
 
 
