@@ -16,7 +16,8 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
   one queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
-  accelerated ramp-up), but never past 1.5 times what the receiver got plus a little, so a
+  accelerated ramp-up), but never past CEILING_FACTOR times what the receiver got plus a
+  little (CEILING_HEADROOM_BPS), so a
   sender that has little to send does not claim a link it never tried. It starts low
   (START_RATE_BPS: the face and a little more), so the first burst of patches or of the full
   snapshot cannot flood a thin link before the first reports come back.
@@ -46,6 +47,16 @@ DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
 INCREASE = 0.08  # a second, multiplicative
 STARTUP_INCREASE = 0.25
+#: The estimate grows to at most this times what the receiver got, plus the headroom (GCC's).
+CEILING_FACTOR = 1.5
+CEILING_HEADROOM_BPS = 10_000.0
+#: What the sender may send at once is less: at most this times what the receiver got lately,
+#: plus the headroom (:attr:`RateController.sending_bps`). A call sends little steadily and
+#: its patches in bursts; with the estimate alone a burst after a quiet spell went into a thin
+#: link at up to 1.7 times its rate (16 kbit/s links were estimated at 27) and the queue
+#: reached 400 ms before the reports cut it. Each report lets a burst grow a fifth.
+PACE_FACTOR = 1.2
+PACE_HEADROOM_BPS = 4_000.0
 BASE_WINDOW_S = 30.0
 #: The rate never falls below this: the face's own geometry and the headers of a datagram every
 #: 100 ms fit in it.
@@ -92,6 +103,14 @@ class RateController:
         self._bytes: deque[tuple[float, int]] = deque()  # arrival s, bytes received
         self._last_decrease = -math.inf
         self._last_update: float | None = None
+
+    @property
+    def sending_bps(self) -> float:
+        """What may leave now: the estimate, within PACE_FACTOR of what the receiver got."""
+        got = self.last.received_bps
+        if got <= 0:
+            return self.rate_bps
+        return min(self.rate_bps, PACE_FACTOR * got + PACE_HEADROOM_BPS)
 
     def on_sent(self, index: int, now: float) -> None:
         """A datagram of ``index`` left at ``now`` (seconds, sender's clock)."""
@@ -167,7 +186,7 @@ class RateController:
                 )  # fmt: skip
             return
         if queue_ms < QUEUE_LOW_MS and loss < LOSS_LOW:
-            ceiling = 1.5 * received_bps + 10_000.0
+            ceiling = CEILING_FACTOR * received_bps + CEILING_HEADROOM_BPS
             increase = INCREASE if self.decreases else STARTUP_INCREASE
             grown = self.rate_bps * (1.0 + increase * dt)
             self.rate_bps = max(self.rate_bps, min(grown, ceiling))

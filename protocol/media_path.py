@@ -354,11 +354,12 @@ class SenderMediaPath(_Path):
         return any(p.down(now) for p in self._by_key.values())
 
     def budget_bps(self, now: float, most: float, congested_only: bool = False) -> float:
-        """The sending budget: ``most``, or less where a receiver's link carries less
-        (``congested_only``: where its reports have shown a queue or loss: not the estimate's
-        cautious start, which the datagrams' packing need not follow)."""
+        """The sending budget: ``most``, or less where a receiver's link carries less, or has
+        not been shown to (RateController.sending_bps). ``congested_only``: the estimate
+        alone, where its reports have shown a queue or loss: not its cautious start, which
+        the datagrams' packing need not follow."""
         rates = [
-            p.controller.rate_bps
+            p.controller.rate_bps if congested_only else p.controller.sending_bps
             for p in self.live(now)
             if p.controller.decreases or not congested_only
         ]

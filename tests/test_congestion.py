@@ -10,6 +10,8 @@ import pytest
 
 from protocol.bundle import Report
 from protocol.congestion import (
+    CEILING_FACTOR,
+    CEILING_HEADROOM_BPS,
     DECREASE,
     DECREASE_HOLD_S,
     MIN_RATE_BPS,
@@ -109,7 +111,7 @@ def test_starts_low_a_little_above_the_face() -> None:
 def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
     controller = RateController(start_bps=20_000)
     steps = simulate(controller, 40)
-    ceiling = 1.5 * RECEIVED_BPS + 10_000
+    ceiling = CEILING_FACTOR * RECEIVED_BPS + CEILING_HEADROOM_BPS
     assert steps[0].received_bps == 0  # the first report only starts the count
     assert all(s.received_bps == pytest.approx(RECEIVED_BPS, rel=0.01) for s in steps[1:])
     assert all(s.queue_ms == pytest.approx(0, abs=1) and s.loss == 0 for s in steps)
@@ -117,8 +119,12 @@ def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
     assert rates == sorted(rates)  # never falls
     after_2s = next(s.rate_bps for s in steps if s.now >= T0 + 2)
     assert 20_000 * 1.5 < after_2s < 20_000 * 1.75  # about 25% a second before any decrease
-    assert max(rates) <= 1.5 * max(s.received_bps for s in steps) + 10_000 + 1e-6
+    assert max(rates) <= CEILING_FACTOR * max(s.received_bps for s in steps) + 10_000 + 1e-6
     assert rates[-1] == pytest.approx(ceiling, rel=0.02)
+    assert ceiling == pytest.approx(46_000)  # GCC's 1.5 x 24 + 10
+    # What may leave at once: 1.2 x 24 + 4, so a burst of patches after a quiet spell does
+    # not go into a thin link at nearly twice what it was seen to carry.
+    assert controller.sending_bps == pytest.approx(32_800, rel=0.02)
     assert controller.decreases == 0
 
 
