@@ -33,6 +33,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from protocol.datagram import IP_UDP_BYTES
+
 logger = logging.getLogger(__name__)
 
 QUEUE_HIGH_MS = 40.0
@@ -100,7 +102,7 @@ class RateController:
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
         self._prev: tuple[float, int, int, int] | None = None  # arrival s, highest, rx, bytes
         self._history: deque[tuple[float, int, int]] = deque()  # arrival s, highest, received
-        self._bytes: deque[tuple[float, int]] = deque()  # arrival s, bytes received
+        self._bytes: deque[tuple[float, int, int]] = deque()  # arrival s, datagrams, bytes
         self._last_decrease = -math.inf
         self._last_update: float | None = None
 
@@ -163,12 +165,17 @@ class RateController:
         if loss > 0 and self.lossy:
             self.losing = True
         if not self._bytes:
-            self._bytes.append((prev[0], prev[3]))
-        self._bytes.append((arrival_s, received_bytes))
+            self._bytes.append((prev[0], prev[2], prev[3]))
+        self._bytes.append((arrival_s, received, received_bytes))
         while len(self._bytes) > 2 and arrival_s - self._bytes[1][0] >= RATE_WINDOW_S:
             self._bytes.popleft()
-        since, bytes_then = self._bytes[0]
-        received_bps = ((received_bytes - bytes_then) & 0xFFFFFFFF) * 8.0 / (arrival_s - since)
+        since, count_then, bytes_then = self._bytes[0]
+        # The report counts UDP payloads; the rate counts what crossed the link, as the
+        # budget does: each datagram's IP and UDP headers too (28 of a 90-byte datagram).
+        wire = ((received_bytes - bytes_then) & 0xFFFFFFFF) + IP_UDP_BYTES * (
+            (received - count_then) & 0xFFFFFFFF
+        )
+        received_bps = wire * 8.0 / (arrival_s - since)
         self.last = Estimate(queue_ms, window_loss, received_bps)
         self._update(now, queue_ms, window_loss, received_bps)
 

@@ -19,11 +19,12 @@ from protocol.congestion import (
     START_RATE_BPS,
     RateController,
 )
+from protocol.datagram import IP_UDP_BYTES
 
 T0 = 100.0  # the sender's clock at the start, s
 FPS = 20  # datagrams a second: 5 in each report interval
-SIZE = 150  # UDP payload bytes of each: 24 kbit/s received when none is lost
-RECEIVED_BPS = SIZE * 8 * FPS
+SIZE = 122  # UDP payload bytes of each: with IP's and UDP's 28, 24 kbit/s when none is lost
+RECEIVED_BPS = (SIZE + IP_UDP_BYTES) * 8 * FPS
 
 
 @dataclass
