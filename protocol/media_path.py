@@ -103,6 +103,7 @@ _RECV_BYTES = 2048  # more than any datagram we send: a longer one is not ours
 _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
 _ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
+MAX_STAMP_AGE_S = 1.0
 
 
 def frames_per_datagram(budget_bps: float, fps: float, lossy: bool = False) -> int:
@@ -206,8 +207,9 @@ class _Path:
         for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(value) >= 16:
                 seconds, nanoseconds = _TIMESPEC.unpack_from(value)
-                age = max(0.0, time.time() - (seconds + nanoseconds / 1e9))
-        return data, address, age
+                age = time.time() - (seconds + nanoseconds / 1e9)
+        # A wall clock that stepped (NTP) makes the stamp say nothing: the loop's time then.
+        return data, address, age if 0.0 < age < MAX_STAMP_AGE_S else 0.0
 
     def _open(self, opener: Opener, data: bytes) -> tuple[int, list[bytes]] | None:
         """(packet index, elements) of an authentic datagram, else None (counted by why)."""
