@@ -103,13 +103,16 @@ class RateController:
         self._prev: tuple[float, int, int, int] | None = None  # arrival s, highest, rx, bytes
         self._history: deque[tuple[float, int, int]] = deque()  # arrival s, highest, received
         self._bytes: deque[tuple[float, int, int]] = deque()  # arrival s, datagrams, bytes
+        self._latest_bps = 0.0  # what the receiver got over the last report's interval
         self._last_decrease = -math.inf
         self._last_update: float | None = None
 
     @property
     def sending_bps(self) -> float:
-        """What may leave now: the estimate, within PACE_FACTOR of what the receiver got."""
-        got = self.last.received_bps
+        """What may leave now: the estimate, within PACE_FACTOR of what the receiver got (over
+        the last second, or the last report's interval if more: a burst that the link
+        carries grows by a fifth with each report, not each second)."""
+        got = max(self.last.received_bps, self._latest_bps)
         if got <= 0:
             return self.rate_bps
         return min(self.rate_bps, PACE_FACTOR * got + PACE_HEADROOM_BPS)
@@ -176,6 +179,8 @@ class RateController:
             (received - count_then) & 0xFFFFFFFF
         )
         received_bps = wire * 8.0 / (arrival_s - since)
+        latest = ((received_bytes - prev[3]) & 0xFFFFFFFF) + IP_UDP_BYTES * got
+        self._latest_bps = latest * 8.0 / span
         self.last = Estimate(queue_ms, window_loss, received_bps)
         self._update(now, queue_ms, window_loss, received_bps)
 

@@ -129,6 +129,27 @@ def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
     assert controller.decreases == 0
 
 
+def test_a_burst_grows_a_fifth_a_report_to_the_estimate() -> None:
+    """A sender that sent 12 kbit/s and now has patches to send: what may leave grows with
+    each report while the link carries it (1.2 x what came + 4 kbit/s), up to the estimate,
+    in about 1.5 s."""
+    controller = RateController(start_bps=64_000)
+    index = got = nbytes = 0
+    t, allowed = T0, []
+    for report in range(12):
+        rate = 12_000.0 if report < 4 else controller.sending_bps  # patches after 1 s
+        allowed.append(rate)
+        size = round(rate * 0.25 / 8 / 5) - IP_UDP_BYTES  # 5 datagrams a report
+        for _ in range(5):
+            controller.on_sent(index, t)
+            index, t = index + 1, t + 0.05
+        got, nbytes = got + 5, nbytes + 5 * size
+        controller.on_report(t + 0.01, index - 1, round((t + 0.05) * 1000), got, nbytes)
+    assert allowed[4] == pytest.approx(1.2 * 12_000 + 4_000, rel=0.02)
+    reached = next(i for i, a in enumerate(allowed) if a >= 0.95 * 64_000)
+    assert 4 + 4 <= reached <= 4 + 6  # a fifth and 4 kbit/s a report: 6 reports, 1.5 s
+
+
 def test_not_raised_past_what_was_received() -> None:
     """A sender with little to send does not claim a link it never tried."""
     controller = RateController(start_bps=64_000)  # above 1.5 x 24 + 10
