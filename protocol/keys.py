@@ -133,15 +133,20 @@ def write_keypair(
 ) -> tuple[Path, Path]:
     """Make a new keypair: ``out_dir/NAME.key`` and ``out_dir/NAME.key_secret`` (mode 0600).
 
-    Existing files are kept (ValueError) unless ``force``. Returns (public file, secret file).
+    A missing ``out_dir`` is made, mode 0700. Existing files are kept (ValueError) unless ``force``. Returns (public file, secret file).
     """
     import zmq
 
     if not _NAME.match(name):
         raise ValueError(f"key name {name!r} may only use letters, digits, '_', '-' and '.'")
     folder = Path(out_dir)
-    if not folder.is_dir():
-        raise ValueError(f"output directory {folder} does not exist")
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"cannot write keys to {folder}: it is a file, not a folder")
+    try:
+        # A folder made for keys holds secret ones: only its owner may look inside.
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"cannot make the folder {folder}: {exc.strerror or exc}") from None
     public_file = folder / f"{name}{PUBLIC_SUFFIX}"
     secret_file = folder / f"{name}{SECRET_SUFFIX}"
     if not force:

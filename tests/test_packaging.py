@@ -100,3 +100,16 @@ def test_compose_validation_catches_a_broken_file(tmp_path: Path) -> None:
         timeout=60,
     )
     assert r.returncode != 0 and "portz" in r.stderr
+
+
+def test_secret_keys_stay_out_of_git() -> None:
+    # `facewire keys --out keys`, as the docs have it, writes into the checkout.
+    if not (ROOT / ".git").exists() or shutil.which("git") is None:
+        pytest.skip("not a git checkout")
+    r = subprocess.run(
+        ["git", "-C", str(ROOT), "check-ignore", "--no-index", "keys/sender.key_secret"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr

@@ -50,8 +50,24 @@ def test_keys_command_refuses_to_overwrite(
     assert (tmp_path / "facewire.key_secret").read_text() == before
     assert main(["keys", "--out", str(tmp_path), "--force"]) == 0
     assert (tmp_path / "facewire.key_secret").read_text() != before
-    assert main(["keys", "--out", str(tmp_path / "nope")]) == 1
-    assert capsys.readouterr().err.endswith("does not exist\n")
+
+
+def test_keys_command_makes_its_folder_private(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The README's first command on a fresh checkout, where keys/ does not exist yet.
+    folder = tmp_path / "keys"
+    assert main(["keys", "--out", str(folder), "--name", "sender"]) == 0
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    assert stat.S_IMODE((folder / "sender.key_secret").stat().st_mode) == 0o600
+    load_keypair(folder / "sender.key_secret")
+    assert capsys.readouterr().out.startswith(f"wrote {folder / 'sender.key'} (public)")
+    # A file where the folder should be is one line.
+    assert main(["keys", "--out", str(folder / "sender.key")]) == 1
+    assert capsys.readouterr().err == (
+        f"facewire: error: cannot write keys to {folder / 'sender.key'}: "
+        "it is a file, not a folder\n"
+    )
 
 
 @pytest.mark.parametrize(
