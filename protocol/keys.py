@@ -133,7 +133,8 @@ def write_keypair(
 ) -> tuple[Path, Path]:
     """Make a new keypair: ``out_dir/NAME.key`` and ``out_dir/NAME.key_secret`` (mode 0600).
 
-    A missing ``out_dir`` is made, mode 0700. Existing files are kept (ValueError) unless ``force``. Returns (public file, secret file).
+    A missing ``out_dir`` is made, mode 0700. Existing files are kept (ValueError) unless
+    ``force``. Returns (public file, secret file).
     """
     import zmq
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -113,3 +115,45 @@ def test_secret_keys_stay_out_of_git() -> None:
         timeout=60,
     )
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_the_build_warns_of_nothing_of_ours(tmp_path: Path) -> None:
+    """`make demo`'s editable install, and a wheel, built by the setuptools pyproject.toml
+    asks for: no deprecation (project.license as a table) and no editable-install warning."""
+    project = tmp_path / "facewire"
+    project.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, project)
+    for package in ("facewire", "models", "sender", "receiver", "protocol"):
+        shutil.copytree(
+            ROOT / package, project / package, ignore=shutil.ignore_patterns("__pycache__")
+        )
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    python = str(venv / "bin" / "python")
+    requires = tomllib.loads((ROOT / "pyproject.toml").read_text())["build-system"]["requires"]
+    pip = subprocess.run(
+        [python, "-m", "pip", "install", "--quiet", *requires],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if pip.returncode != 0:
+        pytest.skip(f"cannot install {requires}: {pip.stderr.strip().splitlines()[-1:]}")
+    build = (
+        "import sys\n"
+        "from setuptools import build_meta\n"
+        "print(build_meta.build_wheel(sys.argv[1]))\n"
+        "print(build_meta.build_editable(sys.argv[1]))\n"
+    )
+    r = subprocess.run(
+        [python, "-W", "always", "-c", build, str(tmp_path / "dist")],
+        cwd=project,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "editable" in r.stdout
+    said = r.stdout + r.stderr
+    assert "Warning" not in said and "!!" not in said, said
