@@ -32,11 +32,13 @@ from facewire.peer import (
     add_address_arguments,
     add_key_arguments,
     address_from,
+    check_ports_free,
     receiver_keys,
     sender_keys,
 )
 from facewire.watch import Watchers, add_watch_arguments, check_watch_arguments, wants_watching
 from protocol.constants import LATE_FRAMES
+from protocol.transport import TransportError
 
 logger = logging.getLogger(__name__)
 
@@ -81,15 +83,6 @@ class StopSignal:
 def say(line: str) -> None:
     """One line for the person running the command (stdout, at once: it may be a pipe)."""
     print(line, flush=True)
-
-
-def _quiet_opencv() -> None:
-    # OpenCV prints its own warnings on stderr when a camera index does not exist; our
-    # one-line error says it better.
-    import cv2
-
-    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -447,7 +440,6 @@ def send(
 
 
 def run_send(args: argparse.Namespace) -> int:
-    _quiet_opencv()
     address = address_from(args)
     keys = sender_keys(args)
     with StopSignal() as stop:
@@ -581,6 +573,9 @@ def _call_receiver(
                 once=True,
             )
             results.put(("ok", stats))
+        except TransportError as exc:  # names its side already
+            logger.debug("receiver failed", exc_info=True)
+            results.put(("error", str(exc)))
         except Exception as exc:  # reported as one line by the parent
             logger.debug("receiver failed", exc_info=True)
             results.put(("error", f"receiver: {exc}"))
@@ -590,8 +585,8 @@ def _call_receiver(
 
 
 def run_call(args: argparse.Namespace) -> int:
-    _quiet_opencv()
     address = address_from(args, ports_used=CALL_PORTS)
+    check_ports_free(address, CALL_PORTS)
     keys_out, keys_in = sender_keys(args), receiver_keys(args)
     _check_record(args.record)
     check_watch_arguments(args)

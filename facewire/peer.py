@@ -75,6 +75,27 @@ def parse_address(text: str, bind: bool, ports_used: int = 2) -> Address:
     return Address(host, port, bind)
 
 
+def check_ports_free(address: Address, count: int) -> None:
+    """A binding end's ports PORT..PORT+count-1, checked before anything starts: ValueError
+    with one line when one is taken (``call`` would otherwise start sending before its
+    receiving side found out)."""
+    if not address.bind:
+        return
+    host = None if address.host == "*" else address.host
+    for port in range(address.port, address.port + count):
+        family, kind, proto, _, where = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+        with socket.socket(family, kind, proto) as sock:
+            # As libzmq binds: a port left in TIME_WAIT by an earlier call is free.
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind(where)
+            except OSError as exc:
+                reason = (exc.strerror or str(exc)).lower()
+                raise ValueError(f"cannot bind tcp://{address.host}:{port}: {reason}") from None
+
+
 def add_address_arguments(p: argparse.ArgumentParser, example_port: int = 5555) -> None:
     """``--bind`` or ``--connect`` (exactly one)."""
     where = p.add_mutually_exclusive_group(required=True)

@@ -86,6 +86,8 @@ class TrackInput:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        if self.path.is_dir():
+            raise CaptureError(f"cannot open {self.path}: it is a folder, not a file")
         if not self.path.is_file():
             raise CaptureError(f"cannot open {self.path}: no such file")
         self.image: np.ndarray | None = None

@@ -209,7 +209,9 @@ def _attach(
         try:
             return (_bind(sockets[0], host, ports[0]), _bind(sockets[1], host, ports[1]))
         except zmq.ZMQError as exc:
-            raise TransportError(f"{side}: cannot bind on {host} ports {ports}: {exc}") from exc
+            # libzmq's text ends with "(addr='tcp://...')", which the line says already.
+            reason = os.strerror(exc.errno) if exc.errno else str(exc)
+            raise TransportError(f"{side}: cannot bind on {host} ports {ports}: {reason}") from exc
     for port in ports:
         if not 1 <= port <= 65535:
             raise TransportError(f"{side}: cannot connect to port {port} (expected 1..65535)")

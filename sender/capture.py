@@ -63,6 +63,8 @@ class VideoSource:
             self.name = f"camera {index}"
         else:
             path = Path(str(source))
+            if path.is_dir():
+                raise CaptureError(f"cannot open video {path}: it is a folder, not a file")
             if not path.is_file():
                 raise CaptureError(f"cannot open video {path}: no such file")
             self._cap = cv2.VideoCapture(str(path))

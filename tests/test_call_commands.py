@@ -219,6 +219,7 @@ def _busy_port() -> tuple[socket.socket, int]:
         "address-unknown-host",
         "address-connect-to-star",
         "port-in-use",
+        "port-in-use-in-a-call",
         "no-sender-comes",
         "no-receiver-comes",
         "missing-key-file",
@@ -262,6 +263,11 @@ def test_bad_use_ends_with_one_line_and_status_1(
         "port-in-use": (
             ["receive", "--bind", f"tcp://127.0.0.1:{busy_port}", "--plain"],
             "Address already in use",
+        ),
+        "port-in-use-in-a-call": (
+            # The binding end receives on PORT+2: its sending side must not start first.
+            ["call", "--bind", f"tcp://127.0.0.1:{busy_port - 2}", "--plain"],
+            f"cannot bind tcp://127.0.0.1:{busy_port}: address already in use",
         ),
         "no-sender-comes": (
             ["receive", "--bind", here, "--plain", "--join-timeout", "1"],
@@ -338,4 +344,6 @@ def test_bad_use_ends_with_one_line_and_status_1(
     finally:
         busy.close()
     assert result.returncode == 1, result.stdout + result.stderr
-    assert expected in one_line_error(result.stderr)
+    line = one_line_error(result.stderr)
+    assert expected in line and "(addr=" not in line, line
+    assert "send: " not in result.stdout, result.stdout  # nothing started

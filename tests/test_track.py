@@ -350,7 +350,7 @@ def _bad_inputs(tmp: Path) -> list[tuple[list[str], str]]:
         (["--input", str(tmp / "notes.txt"), "--json", out], "not an image or a video"),
         (["--input", str(tmp / "broken.jpg"), "--json", out], "not an image OpenCV can read"),
         (["--input", str(tmp / "empty.mp4"), "--json", out], "not an image or a video"),
-        (["--input", str(tmp / "folder"), "--json", out], "no such file"),
+        (["--input", str(tmp / "folder"), "--json", out], "it is a folder"),
         (["--input", str(video), "--json", out, "--draw", str(tmp / "d.png")], ".mp4"),
         (["--input", str(FIXTURE), "--json", str(tmp / "nowhere" / "o.json")], "does not exist"),
         (["--input", str(video), "--json", out, "--frames", "0"], "at least 1"),
