@@ -675,8 +675,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "send",
         help="send a camera or video to a receiver",
-        description="Tracks the face of a camera or a video and sends it to `facewire "
-        "receive`. Ends at the end of the input or on Ctrl-C, with a Bye.",
+        description="Tracks the face of a camera or a video and sends it to facewire "
+        "receive. Ends at the end of the input or on Ctrl-C, with a Bye.",
     )
     add_address_arguments(p)
     _add_source_arguments(p)
@@ -690,7 +690,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "receive",
         help="receive a call, record and measure it",
-        description="Rebuilds the face `facewire send` sends. Waits for the next session "
+        description="Rebuilds the face facewire send sends. Waits for the next session "
         "when one ends, until Ctrl-C.",
     )
     add_address_arguments(p)

@@ -66,7 +66,11 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="facewire", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="facewire",
+        description="A model-based video call: the sender tracks a face and sends a few kbit/s "
+        "of its motion, the receiver rebuilds it from a 3D face model.",
+    )
     parser.add_argument(
         "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
     )

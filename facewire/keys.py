@@ -20,7 +20,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "keys",
         help="make a CURVE keypair (NAME.key public, NAME.key_secret secret)",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description="Makes a CURVE keypair for one end of a call: NAME.key (public: give it "
+        "to the other end) and NAME.key_secret (secret, mode 0600: keep it). A folder that "
+        "does not exist is made, readable by you alone.",
     )
     p.add_argument("--out", metavar="DIR", required=True, help="folder to write the files to")
     p.add_argument("--name", default="facewire", help="file name stem (default: facewire)")

@@ -70,7 +70,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "rem-map",
         help="map where a clip's texture change outweighs its shape change (REM analysis)",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description="Where texture change outweighs shape change (seed 003's REM analysis): "
+        "the flow, the shape change and the texture change over a clip, drawn over the face "
+        "model's texture with the REM regions.",
     )
     p.add_argument("--input", metavar="VIDEO", required=True, help="video file to analyse")
     p.add_argument("--output", metavar="MAP.png", required=True, help="where to draw the map")

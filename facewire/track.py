@@ -56,7 +56,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "track",
         help="landmarks and head pose of every frame of an image or video, as JSON",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description="The tracker on its own: the landmarks (with --tracker markers, the "
+        "coloured markers) and the head pose of every frame of an image or a video, as JSON.",
     )
     p.add_argument("--input", metavar="IMAGE_OR_VIDEO", required=True, help="image or video file")
     p.add_argument("--json", metavar="OUT.json", required=True, help="where to write the frames")

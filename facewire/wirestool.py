@@ -226,7 +226,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "wires",
         help="extract wire curves from an expression template, or apply them",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        description="Seed 000's wires as a tool: extract the wire curves that turn BASE.obj "
+        "into an expression TEMPLATE.obj (same topology), or apply them to BASE.obj.",
     )
     sub = p.add_subparsers(dest="wires_command", required=True)
 
