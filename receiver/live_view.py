@@ -7,6 +7,11 @@
 - ``/stream.mjpg``: the picture as MJPEG (``multipart/x-mixed-replace``, one JPEG per part),
   which an ``<img>`` shows in Chromium and Firefox;
 - ``/picture.jpg``: the picture now, once;
+
+Until the first picture comes, the stream and ``/picture.jpg`` show a still that says what the
+receiver waits for (its last status line); after a sender leaves they keep its last picture.
+A stream with nothing new sends its picture again each REPEAT_S, as a browser shows a part
+only once the next one begins: the page loads whether or not a sender is there.
 - ``/figures.json``: bit rate per channel, pictures per second, latency
   (receiver/live_figures.py).
 
@@ -41,9 +46,15 @@ JPEG_QUALITY = 80
 MAX_STREAM_FPS = 30.0
 #: More simultaneous streams than this are refused (503): each costs a socket and its buffers.
 MAX_VIEWERS = 8
+#: A stream with no new picture for this long is sent its last one (or the still) again.
+REPEAT_S = 1.0
 #: How long the server may take to start or stop.
 START_TIMEOUT_S = 10.0
 BOUNDARY = "facewire-picture"
+#: The still shown before the first picture: its size and colours (the page's own).
+STILL_SIZE = (640, 480)
+_STILL_BACKGROUND = (33, 31, 29)  # BGR of the page's #1d1f21
+_STILL_TEXT = (232, 232, 232)
 
 _VIEW_ADDRESS = re.compile(
     r"^(?:\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>\*|[A-Za-z0-9_.\-]+)):(?P<port>[0-9]{1,5})$"
@@ -98,6 +109,23 @@ def encode_jpeg(image: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
     return data.tobytes()
 
 
+def waiting_still(line: str) -> np.ndarray:
+    """(h, w, 3) uint8 BGR: the still the view shows before any picture, saying ``line``."""
+    width, height = STILL_SIZE
+    image = np.full((height, width, 3), _STILL_BACKGROUND, np.uint8)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.putText(image, "facewire", (40, 80), font, 1.2, _STILL_TEXT, 2, cv2.LINE_AA)
+    rows: list[str] = []
+    for word in line.split():
+        if rows and cv2.getTextSize(f"{rows[-1]} {word}", font, 0.7, 1)[0][0] < width - 80:
+            rows[-1] += f" {word}"
+        else:
+            rows.append(word)
+    for i, row in enumerate(rows[:8]):
+        cv2.putText(image, row, (40, 150 + 34 * i), font, 0.7, _STILL_TEXT, 1, cv2.LINE_AA)
+    return image
+
+
 class LiveView:
     """Serves the page on ``host``:``port`` from construction until :meth:`close`.
 
@@ -122,6 +150,7 @@ class LiveView:
         self._jpeg = b""
         self._jpeg_version = 0  # the picture ``_jpeg`` shows
         self._viewers = 0  # streams open (read from the receive loop's thread)
+        self._still_for: tuple[str, bytes] = ("", b"")  # the waiting still's line and JPEG
         self._closing = False
         sock = listen(host, port)
         self.host = host
@@ -288,9 +317,19 @@ class LiveView:
     async def _figures(self, request: web.Request) -> web.Response:
         return web.json_response(self.figures.as_dict(), headers=_NO_STORE)
 
+    def _waiting_jpeg(self) -> bytes:
+        """The still for before the first picture, saying the receiver's last status line."""
+        said = [e for e in self.figures.as_dict()["events"] if not e.startswith("no sound")]
+        line = said[-1] if said else "waiting for a sender"
+        if self._still_for[0] != line:
+            self._still_for = (line, encode_jpeg(waiting_still(line), self._quality))
+        return self._still_for[1]
+
     async def _still(self, request: web.Request) -> web.Response:
         if self._version == 0:
-            raise web.HTTPServiceUnavailable(text="no picture yet: waiting for a sender\n")
+            return web.Response(
+                body=self._waiting_jpeg(), content_type="image/jpeg", headers=_NO_STORE
+            )
         jpeg, _ = await self._fresh_jpeg(self._already_sent())
         if not jpeg:
             raise web.HTTPServiceUnavailable(text="the live view is closing\n")
@@ -310,14 +349,20 @@ class LiveView:
         try:
             sent = self._already_sent()
             await response.write(f"--{BOUNDARY}\r\n".encode())
+            if self._version == 0:
+                await response.write(_part(self._waiting_jpeg()))
             while True:
-                jpeg, sent = await self._fresh_jpeg(sent)
+                try:
+                    jpeg, sent = await asyncio.wait_for(self._fresh_jpeg(sent), REPEAT_S)
+                except TimeoutError:
+                    # Nothing new (no sender yet, or it left): the same picture again, since a
+                    # browser shows a part once the next one begins; the page then loads.
+                    if self._closing:
+                        break
+                    jpeg = self._jpeg if self._jpeg_version else self._waiting_jpeg()
                 if not jpeg:
                     break
-                # The boundary right after each picture tells the browser it is whole, so it
-                # shows it now rather than when the next one starts.
-                head = f"Content-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
-                await response.write(head.encode() + jpeg + f"\r\n--{BOUNDARY}\r\n".encode())
+                await response.write(_part(jpeg))
         except ConnectionError:
             logger.debug("a viewer went away")
         finally:
@@ -326,3 +371,10 @@ class LiveView:
 
 
 _NO_STORE = {"Cache-Control": "no-store"}
+
+
+def _part(jpeg: bytes) -> bytes:
+    """One picture of the MJPEG stream. The boundary right after it tells the browser it is
+    whole, so it shows it now rather than when the next one starts."""
+    head = f"Content-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
+    return head.encode() + jpeg + f"\r\n--{BOUNDARY}\r\n".encode()

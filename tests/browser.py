@@ -143,7 +143,7 @@ def _start(profile: Path) -> tuple[subprocess.Popen[bytes], int]:
         time.sleep(0.1)
 
 
-async def _look(url: str, out: Path, shots: int, gap_s: float, port: int) -> list[Look]:
+async def _look(url: str, out: Path, shots: int, gap_s: float, port: int, ready: str) -> list[Look]:
     async with aiohttp.ClientSession() as http:
         async with http.get(f"http://127.0.0.1:{port}/json/list") as r:
             targets = await r.json()
@@ -153,7 +153,7 @@ async def _look(url: str, out: Path, shots: int, gap_s: float, port: int) -> lis
             await tools.call("Page.enable")
             await tools.call("Page.navigate", url=url)
             deadline = time.monotonic() + PAGE_TIMEOUT_S
-            while not await tools.evaluate(READY):
+            while not await tools.evaluate(ready):
                 if time.monotonic() > deadline:
                     state = await tools.evaluate("document.body ? document.body.innerText : ''")
                     raise RuntimeError(f"the page did not get ready: {state!r}")
@@ -170,13 +170,16 @@ async def _look(url: str, out: Path, shots: int, gap_s: float, port: int) -> lis
             return looks
 
 
-def look_at(url: str, out: Path, shots: int = 2, gap_s: float = 1.5) -> list[Look]:
-    """Open ``url`` in headless Chromium, wait until the live view's page is ready, then take
-    ``shots`` screenshots ``gap_s`` apart into ``out`` with what the page showed at each."""
+def look_at(
+    url: str, out: Path, shots: int = 2, gap_s: float = 1.5, ready: str = READY
+) -> list[Look]:
+    """Open ``url`` in headless Chromium, wait until the live view's page is ready (the
+    JavaScript ``ready`` is true), then take ``shots`` screenshots ``gap_s`` apart into
+    ``out`` with what the page showed at each."""
     with tempfile.TemporaryDirectory(prefix="facewire-chromium-") as profile:
         process, port = _start(Path(profile))
         try:
-            return asyncio.run(_look(url, out, shots, gap_s, port))
+            return asyncio.run(_look(url, out, shots, gap_s, port, ready))
         finally:
             process.terminate()
             try:

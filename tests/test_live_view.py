@@ -10,17 +10,29 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
+from browser import look_at, unavailable
 
 from receiver.live_figures import LiveFigures
-from receiver.live_view import BOUNDARY, MAX_VIEWERS, LiveView, listen, parse_view_address
+from receiver.live_view import (
+    BOUNDARY,
+    MAX_VIEWERS,
+    LiveView,
+    encode_jpeg,
+    listen,
+    parse_view_address,
+    waiting_still,
+)
 from receiver.window import NoDisplay, Window
 
 SIZE = (640, 480)
+BROWSER = unavailable()
+WAITING = "waiting for a sender"  # what the view says before the receiver says anything
 
 
 def picture(level: int, noise: bool = False, seed: int = 0) -> np.ndarray:
@@ -100,6 +112,12 @@ class Stream:
         self.conn.close()
 
 
+def decode(jpeg: bytes) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert image is not None
+    return image
+
+
 def level_of(image: np.ndarray) -> float:
     return float(image[8:56, 8:56].mean())
 
@@ -124,7 +142,9 @@ def test_page_and_figures(view: LiveView) -> None:
         "carries none",
     ):
         assert element in html
-    assert get(view, "/picture.jpg")[0] == 503  # no picture yet
+    status, kind, body = get(view, "/picture.jpg")  # no picture yet: the waiting still
+    assert status == 200 and kind == "image/jpeg"
+    assert np.array_equal(decode(body) > 128, decode(encode_jpeg(waiting_still(WAITING))) > 128)
     figures = json.loads(get(view, "/figures.json")[2])
     assert figures["session"] is None and figures["frames"] == 0 and figures["fps"] == 0
     feeder = Feeder(view)
@@ -139,6 +159,47 @@ def test_page_and_figures(view: LiveView) -> None:
     assert figures["kbps"]["snapshot"] == 0  # nothing came on it in the window
     assert figures["latency_ms"] == {"p50": 20.0, "max": 20.0}
     assert figures["events"] == ["session 7: 640x480 at 30 fps"]
+
+
+def test_before_the_first_picture_a_still_says_what_the_receiver_waits_for(
+    view: LiveView,
+) -> None:
+    line = "waiting for a sender on tcp://*:5555 (and :5556)"
+    view.event(line)
+    stream = Stream(view)  # a viewer who came first
+    try:
+        still = cv2.cvtColor(stream.next_picture(), cv2.COLOR_BGR2GRAY)
+        assert np.array_equal(still > 128, decode(encode_jpeg(waiting_still(line))) > 128)
+        assert not np.array_equal(still > 128, decode(encode_jpeg(waiting_still(WAITING))) > 128)
+        assert view.encoded == 0  # the still is no picture of the call
+        Feeder(view).show(picture(200))
+        # Then the call (after the still again, if it was due meanwhile).
+        assert any(abs(level_of(stream.next_picture()) - 200) < 3 for _ in range(5))
+    finally:
+        stream.close()
+    # The sender left: the last picture stays, for a new viewer too, and comes again (a
+    # browser shows a part once the next begins).
+    view.event("session ended (bye) after 1 frames; waiting for a new session")
+    stream = Stream(view)
+    try:
+        for _ in range(2):
+            assert abs(level_of(stream.next_picture()) - 200) < 3
+    finally:
+        stream.close()
+    status, kind, body = get(view, "/picture.jpg")
+    assert status == 200 and abs(float(decode(body)[8:56, 8:56].mean()) - 200) < 3
+
+
+@pytest.mark.skipif(BROWSER is not None, reason=f"no headless Chromium: {BROWSER}")
+def test_the_page_loads_before_a_sender_comes(view: LiveView, tmp_path: Path) -> None:
+    view.event("waiting for a sender on tcp://*:5555 (and :5556)")
+    loaded = """(() => {
+      const img = document.getElementById("picture");
+      return document.readyState === "complete" && img.complete && img.naturalWidth > 0
+        && document.getElementById("status").textContent.startsWith("waiting for a sender");
+    })()"""
+    (look,) = look_at(view.url, tmp_path, shots=1, ready=loaded)
+    assert look.page["natural"] == list(SIZE)
 
 
 def test_nothing_is_encoded_until_someone_watches(view: LiveView) -> None:
