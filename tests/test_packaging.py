@@ -157,3 +157,49 @@ def test_the_build_warns_of_nothing_of_ours(tmp_path: Path) -> None:
     assert "editable" in r.stdout
     said = r.stdout + r.stderr
     assert "Warning" not in said and "!!" not in said, said
+
+
+def test_an_image_build_sends_what_the_dockerfile_copies_and_no_more(tmp_path: Path) -> None:
+    """The build context as Debian's docker-compose (docker-py) packs it, .dockerignore
+    applied, of a checkout after `make demo` and a call: no .venv, keys, outputs or .git."""
+    python = shutil.which("python3", path="/usr/bin")
+    probe = [python or "python3", "-c", "import docker.utils.build"]
+    if python is None or subprocess.run(probe, capture_output=True).returncode != 0:
+        pytest.skip("no docker-py (Debian's docker-compose; scripts/install-system-deps.sh --test)")
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    copied = [
+        source
+        for line in dockerfile.splitlines()
+        if line.startswith("COPY ")
+        for source in line.split()[1:-1]
+    ]
+    kept = [f"{c}/x.py" if (ROOT / c).is_dir() else c for c in copied]
+    left_out = [
+        ".venv/bin/python",
+        ".venv/lib/python3.11/site-packages/cv2/cv2.so",
+        "keys/alice.key_secret",
+        "out/call.mp4",
+        ".git/HEAD",
+        "demo-output.mp4",
+        "demo-stats.json",
+        "facewire/__pycache__/cli.cpython-311.pyc",
+        "facewire.egg-info/PKG-INFO",
+    ]
+    for name in [*kept, *left_out, "Dockerfile", ".dockerignore"]:
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text("x")
+    shutil.copy(ROOT / ".dockerignore", tmp_path)
+    context = (
+        "import sys\n"
+        "from docker.utils.build import exclude_paths\n"
+        "lines = open(sys.argv[1] + '/.dockerignore').read().splitlines()\n"
+        "patterns = [p.strip() for p in lines if p.strip() and not p.startswith('#')]\n"
+        "print('\\n'.join(sorted(exclude_paths(sys.argv[1], patterns, 'Dockerfile'))))\n"
+    )
+    r = subprocess.run(
+        [python, "-c", context, str(tmp_path)], capture_output=True, text=True, timeout=60
+    )
+    assert r.returncode == 0, r.stderr
+    sent = set(r.stdout.split())
+    assert set(kept) <= sent, set(kept) - sent
+    assert not sent & set(left_out), sent & set(left_out)
