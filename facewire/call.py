@@ -495,8 +495,14 @@ def receive(
         **keys,
     )
     stats = report.as_dict()
+    tell(summary(report, stats, args.record))
+    return stats
+
+
+def summary(report: Any, stats: dict[str, Any], record: str | None) -> str:
+    """``receive``'s last line, from its ReceiverReport and that report's ``as_dict()``."""
     lat = stats["latency_ms"]
-    recorded = f" to {args.record}" if args.record and report.sessions else ""
+    recorded = f" to {record}" if record and report.sessions else ""
     # Capture times are the sender's clock: only a shared clock (one host) gives a latency.
     latency = (
         f", latency p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms"
@@ -504,17 +510,17 @@ def receive(
         else ""
     )
     spare = report.second_path
+    # Only the TCP fallback has a second path: over datagrams late frames bring no copies.
     second = (
         f"; {spare['late_frames']} frames came late, the second path brought "
         f"{spare['saved']} sooner"
-        if spare.get("late_frames") or spare.get("copies")
+        if spare.get("copies")
         else ""
     )
-    tell(
+    return (
         f"received {report.sessions} session(s), {report.frames_out} frames{recorded} "
         f"({report.ended_by}){latency}{second}"
     )
-    return stats
 
 
 def run_receive(args: argparse.Namespace) -> int:

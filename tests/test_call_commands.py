@@ -15,7 +15,9 @@ from pathlib import Path
 import pytest
 from cli_call import Facewire, all_end_well, count_frames, free_ports, run_facewire, wait_for_file
 
+from facewire.call import summary
 from facewire.quality import read_frames, score_frames, track_all
+from receiver.session import ReceiverReport
 from sender.capture import demo_clip_path
 
 FRAMES = 120
@@ -347,3 +349,18 @@ def test_bad_use_ends_with_one_line_and_status_1(
     line = one_line_error(result.stderr)
     assert expected in line and "(addr=" not in line, line
     assert "send: " not in result.stdout, result.stdout  # nothing started
+
+
+def test_the_summary_names_the_second_path_only_where_it_ran() -> None:
+    # Over datagrams a frame may come late (one waits for the next in its datagram), but no
+    # copy goes by the second path: the line said "the second path brought 0 sooner".
+    report = ReceiverReport(sessions=1, frames_out=90, ended_by="stopped", latency_ms=[30.0])
+    report.second_path = {"late_frames": 72, "copies": 0, "late_copies": 0, "saved": 0}
+    line = summary(report, report.as_dict(), "call.mp4")
+    assert line == (
+        "received 1 session(s), 90 frames to call.mp4 (stopped), latency p50 30.0 ms p99 30.0 ms"
+    )
+    report.second_path = {"late_frames": 9, "copies": 120, "late_copies": 4, "saved": 3}
+    line = summary(report, report.as_dict(), None)
+    assert line.endswith("(stopped), latency p50 30.0 ms p99 30.0 ms; 9 frames came late, "
+                         "the second path brought 3 sooner")  # fmt: skip
