@@ -44,7 +44,7 @@ logger = logging.getLogger(__name__)
 
 FACE_SEARCH_FRAMES = 60  # frames read while looking for a face to build the session from
 #: Larger inputs are scaled down to fit before tracking: the receiver renders at the sender's
-#: size, and above this llvmpipe cannot render 30 fps (BENCHMARKS.md, "A call between hosts").
+#: size, and above this llvmpipe cannot render 30 fps (BENCHMARKS.md, "Renderer").
 MAX_SIZE = (1280, 720)
 #: Time a closing end gives its last message (Bye, "left") to leave.
 LINGER_S = 0.5

@@ -6,7 +6,7 @@ Where the two meet the picture is often a pixel or two off: the hair and the nec
 exactly as the outline does, and the outline's own vertices are seen edge-on, where the
 sender's synthesis cannot see them. That band is a large share of a small face: with the true
 frame around the drawn face instead, three of the weakest talking heads scored 0.82-0.86 face
-SSIM against 0.76-0.78 (BENCHMARKS.md, "Where the rest goes: the face's edge").
+SSIM against 0.76-0.78 (docs/what-we-tried.md, "The face's edge, sent").
 
 So the sender, which can rebuild the receiver's surroundings without drawing, measures the
 optical flow from its frame to them at :data:`EDGE_POINTS` points spaced evenly along the

@@ -44,12 +44,12 @@ HYSTERESIS = 0.25
 #: carphone's face SSIM 0.783 before it, 0.772 after at 0.4 px). Finer steps cost bits that
 #: only a face that moves little can afford, so the rate cap widens the hysteresis as its
 #: bucket runs low (sender/rate_cap.py): at 0.25 px five talking heads gain up to 0.010 face
-#: SSIM and none loses (BENCHMARKS.md, "A finer quantiser under the rate cap").
+#: SSIM and none loses (docs/what-we-tried.md, "A finer quantiser under the rate cap").
 DEFAULT_ERROR_PX = 0.25
 #: The head's pose gets this share of the budget: it moves every pixel of the face at once,
 #: so a finer step there buys the most picture per bit (carphone: pose steps x0.5 gave +0.011
-#: face SSIM for 0.19 kbit/s, the wires' x0.5 +0.003 for 0.27; BENCHMARKS.md, "The pose's
-#: share of the error budget").
+#: face SSIM for 0.19 kbit/s, the wires' x0.5 +0.003 for 0.27; docs/what-we-tried.md,
+#: "The pose's share of the error budget").
 POSE_SHARE = 0.8
 
 

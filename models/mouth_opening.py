@@ -17,7 +17,7 @@ markers' own vertices weighing most.
 Two GDEs (seed 002) on the inner lips' centres did this before: they parted the centres as
 far as tracked but left the sides of the lower lip under the wires, so a mouth open in an
 O came out as a lens with a W for its lower edge, the lower lip stretched down over it
-(BENCHMARKS.md, "The inner lips from the mouth rig").
+(docs/what-we-tried.md, "The inner lips from the mouth rig").
 """
 
 from __future__ import annotations

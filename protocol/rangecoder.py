@@ -8,7 +8,7 @@ in docs/protocol.md section 5 so that a peer can be written from the document al
   shift that starts fast and settles: 1, 2, 3 for its first three bits, then ``ADAPT_SHIFT``
   = 4 (p0 += (4096 - p0) >> shift on a 0, p0 -= p0 >> shift on a 1). Contexts are reset at
   every keyframe, so learning fast matters: it saves about 3 % of the geometry bit rate
-  against a fixed shift of 4 (BENCHMARKS.md).
+  against a fixed shift of 4 (docs/what-we-tried.md, "Coding the geometry").
 - "Bypass" bits are coded at p0 = 2048 with no adaptation.
 - The encoder keeps ``low`` as an unbounded integer and propagates a carry into the bytes it
   has already written, so no byte is ever held back.

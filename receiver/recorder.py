@@ -17,8 +17,8 @@ QSCALE = 2
 #: Frames of at most this many pixels (176x144 up to 320x240) are recorded as H.264 at
 #: H264_CRF instead: on a 40-60 px face MPEG-4's 8x8 blocks cost 0.001-0.003 face SSIM, which
 #: H.264 (4x4 transforms, deblocking) mostly keeps, for 0.3 ms a frame. From CIF up MPEG-4
-#: scored as well or better, in a quarter of the time (BENCHMARKS.md, "The recording of a
-#: small call").
+#: scored as well or better, in a quarter of the time (docs/what-we-tried.md, "The
+#: recording").
 SMALL_PIXELS = 100_000
 H264_CRF = 9
 
@@ -42,7 +42,7 @@ class Mp4Recorder:
     the benchmarks score. OpenCV's writer at its default rate cost carphone's rebuilt face
     0.008 SSIM, this 0.002, in a file 1.3 times as large at 640x480. H.264 (libx264, veryfast,
     CRF 12) did a little better (0.0015) in smaller files, but took 4 ms a frame at 640x480
-    and 12 at 1280x720, which held large calls up (BENCHMARKS.md, "The recording").
+    and 12 at 1280x720, which held large calls up (docs/what-we-tried.md, "The recording").
 
     An odd width or height is recorded one pixel larger, the last column or row repeated
     (4:2:0 needs even sides); :func:`crop_to` cuts it back.

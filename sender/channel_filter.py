@@ -20,7 +20,7 @@ steps per second. Each kind of motion gets its own settings:
 
 The settings were chosen against the bundled clip's ground truth (rebuilt markers, blink
 depth) and against real clips' pictures (face SSIM of a call, benchmarks/bench_quality.py);
-BENCHMARKS.md, "Geometry bit rate", has the figures.
+docs/what-we-tried.md, "Smoothing before quantisation", has the figures.
 """
 
 from __future__ import annotations

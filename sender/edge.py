@@ -9,7 +9,7 @@ the camera's frame to it says how far off the receiver's edge is, at each of the
 A vector is kept only where moving the rebuilt picture by it brings the picture about its
 point closer to the frame. Where the scene behind the head changes (carphone's car window),
 the flow follows what is not in the snapshot at all: with every vector kept, the call lost
-0.012 face SSIM there instead of gaining 0.011 (BENCHMARKS.md, "The face's edge, sent").
+0.012 face SSIM there instead of gaining 0.011 (docs/what-we-tried.md, "The face's edge, sent").
 """
 
 from __future__ import annotations

@@ -75,7 +75,7 @@ KEYFRAME_INTERVAL_S = 4.0
 #: (a 192-px crop 1.5 times the face's height): finer steps code the tracker's noise, not the
 #: face. It matters for large faces only (over about 90 px high at 0.25 px): the bundled
 #: clip's 223-px face gets 0.61 px, with the same marker error and blinks against its ground
-#: truth for 1.38 kbit/s instead of 1.77 (BENCHMARKS.md, "A large face's error budget").
+#: truth for 1.38 kbit/s instead of 1.77 (docs/what-we-tried.md, "A large face's error budget").
 TRACKER_RESOLUTION_SHARE = 0.35
 #: Texture side per pixel of the face's width in the snapshot frame (rounded up to a power of
 #: two, within MIN/MAX_TEXTURE_SIZE). Two texels a pixel keep the round trip frame -> texture
@@ -88,7 +88,7 @@ MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE = 64, 512
 #: (with the 2.8 KB of vertices, 12 KB for a 176x144 call and 40 KB for 640x480).
 IMAGE_BUDGET_BASE, IMAGE_BUDGET_PER_PIXEL = 6_380, 0.0993
 #: WebP quality of the snapshot's texture and background (chosen by measurement, see
-#: BENCHMARKS.md "Snapshot size").
+#: docs/what-we-tried.md, "The snapshot's images").
 TEXTURE_QUALITY = 97
 #: REM patches are cut at most this many texels per pixel of the face's width (a power of two
 #: no larger than the texture): a sharper grid costs each patch bytes the camera never saw.

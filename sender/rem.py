@@ -12,7 +12,8 @@ What it shows now may be an image the receiver already holds: each end keeps the
 REM_CACHE images of every region and the snapshot's (an eye open again after a blink looks
 as it did before it), and then a 37-byte reference to it goes instead of an image. An image
 is coded as WebP at the best quality of :data:`QUALITIES` that fits its share of the bucket
-(a 30-200 byte patch is mostly header as a JPEG; BENCHMARKS.md "REM patches").
+(a 30-200 byte patch is mostly header as a JPEG; docs/what-we-tried.md, "REM patches: how
+to code one").
 
 All of it is paid from a token bucket filled at :data:`BUDGET_KBPS`. The region that has
 waited longest goes first, the eyes with a head start of :data:`EYE_HEAD_START` frames (a
@@ -95,8 +96,8 @@ PACKET_OVERHEAD = 40
 MIN_FACING = 0.15
 #: Time constant, seconds, of the reference colour the patches carry: each frame's
 #: measurement moves it by 1 / (COLOUR_TIME_S * fps) of the way. Slow enough to average the
-#: eyes' own changes out, fast enough to follow the light (BENCHMARKS.md, "A steadier
-#: reference colour").
+#: eyes' own changes out, fast enough to follow the light (docs/what-we-tried.md, "A
+#: steadier reference colour").
 COLOUR_TIME_S = 1.5
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-# Chosen with benchmarks/bench_smoothing.py (BENCHMARKS.md, "Tracking real faces"): about
+# Chosen with benchmarks/bench_smoothing.py (BENCHMARKS.md, "Tracking"): about
 # half the jitter on still faces, at most half a frame of lag on the fastest moves. A lower
 # beta or cutoff removes more jitter but lags a frame or more; a higher beta removes little.
 MIN_CUTOFF_HZ = 1.0

@@ -17,8 +17,8 @@ outline, seen edge-on) moves as its seen neighbours do. The fit takes the moved 
 drawing and no OpenGL on the sender: about 1.9 ms per frame at 640x480.
 
 Through the whole call, face SSIM rose by 0.02-0.06 on five of seven real talking heads
-(Miss America +0.006, carphone -0.002; BENCHMARKS.md, "The face moved to where the picture
-matches" and "The eyes in the flow").
+(Miss America +0.006, carphone -0.002; docs/what-we-tried.md, "The face moved to where
+the picture matches").
 """
 
 from __future__ import annotations

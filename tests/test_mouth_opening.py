@@ -84,7 +84,8 @@ def test_a_mouth_open_in_an_o_is_rebuilt_as_an_o() -> None:
 def test_an_open_jaw_is_rebuilt_as_open_as_tracked() -> None:
     """The bundled clip's surprise opens the jaw (frames 112-150): the receiver's inner lips
     part as far as the tracker saw them part. (The clip was made by the wires, so they could
-    part its lips alone; on real footage they cannot: BENCHMARKS.md, "The inner lips".)"""
+    part its lips alone; on real footage they cannot: docs/what-we-tried.md, "The inner lips
+    from the mouth rig".)"""
     with VideoSource(demo_clip_path()) as video:
         frames = [
             CapturedFrame(f.index, f.image, round(f.index * 1e6 / video.fps))
