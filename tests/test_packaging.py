@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -203,3 +204,28 @@ def test_an_image_build_sends_what_the_dockerfile_copies_and_no_more(tmp_path: P
     sent = set(r.stdout.split())
     assert set(kept) <= sent, set(kept) - sent
     assert not sent & set(left_out), sent & set(left_out)
+
+
+def test_make_demo_installs_what_running_needs_and_make_test_the_dev_tools(
+    tmp_path: Path,
+) -> None:
+    if shutil.which("make") is None:
+        pytest.skip("no make")
+    for name in ("Makefile", "pyproject.toml", "scripts/install-system-deps.sh"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / name, tmp_path / name)
+
+    def planned(target: str) -> list[str]:
+        r = subprocess.run(
+            ["make", "-n", target], cwd=tmp_path, capture_output=True, text=True, timeout=60
+        )
+        assert r.returncode == 0, r.stderr
+        return [line for line in r.stdout.splitlines() if "pip install" in line]
+
+    demo, test = planned("demo"), planned("test")
+    assert not any("[dev]" in line for line in demo), demo
+    # pip shows its progress while facewire's dependencies install: no minute of silence.
+    assert any(" -e ." in line and "--quiet" not in line for line in demo), demo
+    assert any("[dev]" in line for line in test), test
+    dev = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert {"pytest", "mypy", "ruff"} <= {re.split(r"[<>=\[]", d)[0] for d in dev["dev"]}
