@@ -37,7 +37,8 @@ def main() -> int:
         parts = {
             "texture": len(snapshot.texture),
             "background": len(snapshot.background),
-            "vertices": snapshot.vertices.nbytes,
+            # As the packet codes them (against the canonical mesh), not the array's size.
+            "vertices": len(snapshot._vertex_bytes()),
         }
         rest = total - sum(parts.values())
         print(
