@@ -38,7 +38,7 @@ def main() -> int:
             "texture": len(snapshot.texture),
             "background": len(snapshot.background),
             # As the packet codes them (against the canonical mesh), not the array's size.
-            "vertices": len(snapshot._vertex_bytes()),
+            "vertices": len(snapshot.vertex_bytes()),
         }
         rest = total - sum(parts.values())
         print(

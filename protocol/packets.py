@@ -329,7 +329,8 @@ class Snapshot(_Packet):
                     f"mesh's {mesh_code.vertex_count()}"
                 )
 
-    def _vertex_bytes(self) -> bytes:
+    def vertex_bytes(self) -> bytes:
+        """Field 7 as sent: the vertices coded (meta["vertex_step"]) or as floats."""
         step = self.meta.get(mesh_code.VERTEX_STEP)
         if isinstance(step, float):
             try:
@@ -346,7 +347,7 @@ class Snapshot(_Packet):
             self.height,
             self.fps,
             len(self.vertices),
-            self._vertex_bytes(),
+            self.vertex_bytes(),
             self.texture,
             self.background,
             [list(entry) for entry in self.channels],
