@@ -79,9 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     from facewire import bandwidth
 
     bandwidth.add_parser(sub)
-    from facewire import call, keys, remmap, track, wirestool
+    from facewire import call, keys, relay, remmap, track, wirestool
 
     call.add_parsers(sub)
+    relay.add_parser(sub)
     wirestool.add_parser(sub)
     keys.add_parser(sub)
     track.add_parser(sub)
