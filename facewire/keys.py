@@ -1,8 +1,11 @@
-"""``facewire keys``: make a CURVE keypair for one end of a call.
+"""``facewire keys``: make a CURVE keypair for one end of a call, or a room's secret.
 
 Writes ``NAME.key`` (public: give it to the other end) and ``NAME.key_secret`` (secret, mode
 0600: keep it) in ZeroMQ's certificate format. The sender admits the receivers whose public
 keys it is given; a receiver needs the sender's public key.
+
+``--room NAME`` writes ``NAME.room`` instead (mode 0600): the secret every participant of
+room NAME passes as ``facewire room --key``; it never goes to the relay (protocol/sframe.py).
 """
 
 from __future__ import annotations
@@ -24,13 +27,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "to the other end) and NAME.key_secret (secret, mode 0600: keep it). A folder that "
         "does not exist is made, readable by you alone.",
     )
-    p.add_argument("--out", metavar="DIR", required=True, help="folder to write the files to")
+    p.add_argument("--out", metavar="DIR", help="folder to write the files to (--room: default .)")
+    p.add_argument("--room", metavar="NAME", help="make room NAME's secret, NAME.room")
     p.add_argument("--name", default="facewire", help="file name stem (default: facewire)")
     p.add_argument("--force", action="store_true", help="replace existing key files")
 
     def run(args: argparse.Namespace) -> int:
+        if args.room is not None:
+            return _room_key(args.room, args.out or ".", args.force)
+        if args.out is None:
+            raise ValueError("keys needs --out DIR (or --room NAME for a room's secret)")
         public, secret = write_keypair(args.out, args.name, force=args.force)
         print(f"wrote {public} (public) and {secret} (secret, keep it private)")
         return 0
 
     p.set_defaults(func=run)
+
+
+def _room_key(room: str, out: str, force: bool) -> int:
+    from pathlib import Path
+
+    from protocol.sframe import RoomKey
+    from protocol.subjects import check_name
+
+    check_name(room, "room")
+    path = Path(out) / f"{room}.room"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    RoomKey.generate(room).write(path, force=force)
+    print(f"wrote {path} (room {room}'s secret: give it to its participants only)")
+    return 0
