@@ -79,10 +79,11 @@ def build_parser() -> argparse.ArgumentParser:
     from facewire import bandwidth
 
     bandwidth.add_parser(sub)
-    from facewire import call, keys, relay, remmap, track, wirestool
+    from facewire import call, keys, relay, remmap, room, track, wirestool
 
     call.add_parsers(sub)
     relay.add_parser(sub)
+    room.add_parser(sub)
     wirestool.add_parser(sub)
     keys.add_parser(sub)
     track.add_parser(sub)

@@ -22,6 +22,7 @@ import logging
 import os
 import secrets
 import struct
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -134,19 +135,25 @@ def _seal(state: _KeyState, kid: int, ctr: int, metadata: bytes, plaintext: byte
 
 
 class Sealer:
-    """One sender's messages under one KID: the counter goes up by one each message."""
+    """One sender's messages under one KID: the counter goes up by one each message.
+
+    Threads may share it (a participant's media and its keyframe requests): two messages
+    under one counter would reuse a nonce, which GCM does not survive.
+    """
 
     def __init__(self, base_key: bytes, kid: int) -> None:
         self.kid = kid
         self._state = _KeyState(base_key, kid)
         self.ctr = 0
+        self._lock = threading.Lock()
 
     def seal(self, plaintext: bytes, metadata: bytes = b"") -> bytes:
-        if self.ctr > MAX_COUNTER:
-            raise SFrameError("counter exhausted: this key must not seal more")
-        out = _seal(self._state, self.kid, self.ctr, metadata, plaintext)
-        self.ctr += 1
-        return out
+        with self._lock:
+            ctr = self.ctr
+            if ctr > MAX_COUNTER:
+                raise SFrameError("counter exhausted: this key must not seal more")
+            self.ctr += 1
+        return _seal(self._state, self.kid, ctr, metadata, plaintext)
 
 
 class ReplayWindow:

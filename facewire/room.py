@@ -1,0 +1,207 @@
+"""``facewire room``: join a call of many people through a NATS relay (docs/rooms.md).
+
+A participant sends its own stream once, as a two-party sender would (the same encoder, the
+same bundles), and receives everyone else's, one decoder per peer. Three threads: the sender's
+loop (capture, track, encode, publish), the NATS link's event loop, and this one, which opens
+and decodes what comes (and records it, one file per peer).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import threading
+from pathlib import Path
+from typing import Any
+
+from protocol import subjects
+from protocol.media_path import DEFAULT_BUDGET_BPS
+from protocol.sframe import RoomKey, Sealer, new_kid
+
+logger = logging.getLogger(__name__)
+
+#: How long the receiving loop waits for a message before it looks at who went silent.
+TICK_S = 0.1
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    from facewire.call import _add_source_arguments, _max_kbps, add_sound_arguments
+
+    p = subparsers.add_parser(
+        "room",
+        help="join a room: a call of many people through a NATS relay",
+        description=__doc__.split("\n\n")[1] if __doc__ else None,
+    )
+    p.add_argument("--room", required=True, help="the room's name")
+    p.add_argument("--name", required=True, help="this participant's name in the room")
+    p.add_argument(
+        "--key", metavar="FILE", required=True,
+        help="the room's secret (facewire keys --room NAME makes it)",
+    )  # fmt: skip
+    p.add_argument(
+        "--server", metavar="URL", action="append", default=[],
+        help="a relay, nats://TOKEN@HOST:PORT (again for each node of a cluster); "
+        "none: an embedded relay on loopback",
+    )  # fmt: skip
+    _add_source_arguments(p)
+    add_sound_arguments(p)
+    p.add_argument(
+        "--max-kbps", type=_max_kbps, metavar="N",
+        help=f"this participant's stream budget (default {DEFAULT_BUDGET_BPS / 1000:g})",
+    )  # fmt: skip
+    p.add_argument("--record-dir", metavar="DIR", help="record each peer to DIR/NAME.mp4")
+    p.add_argument("--stats", metavar="FILE.json", help="write the room's figures as JSON")
+    p.set_defaults(func=run)
+
+
+class _SendingSide:
+    """The sender's loop in a thread; what ended it is kept for the main thread."""
+
+    def __init__(self, args: argparse.Namespace, link: Any, key: RoomKey, sealer: Sealer,
+                 stop: Any, tell: Any) -> None:  # fmt: skip
+        self.args, self.link, self.key, self.sealer = args, link, key, sealer
+        self.stop, self.tell = stop, tell
+        self.endpoint: Any = None
+        self.report: Any = None
+        self.error: BaseException | None = None
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="room-sender", daemon=True)
+
+    def _run(self) -> None:
+        try:
+            self._send()
+        except BaseException as exc:  # said by the main thread, in one line
+            logger.debug("sender failed", exc_info=True)
+            self.error = exc
+        finally:
+            self.done.set()
+
+    def _send(self) -> None:
+        from facewire.call import FACE_SEARCH_FRAMES, _Source, sound_as_asked
+        from facewire.room_sender import RoomSender
+        from sender.audio import with_sound
+        from sender.encoder import FaceEncoder
+        from sender.session import restamped, run_sender, start_session
+
+        args = self.args
+        source = _Source(args)
+        try:
+            encoder = FaceEncoder(*source.size, source.video.fps)
+            frames = source.frames()
+            snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.name)
+            max_bps = DEFAULT_BUDGET_BPS if args.max_kbps is None else args.max_kbps * 1000
+            endpoint = RoomSender(
+                self.link, self.key, args.name, self.sealer, source.video.fps, max_bps
+            )
+            endpoint.set_snapshot(snapshot)
+            self.endpoint = endpoint
+            width, height = source.size
+            self.tell(
+                f"sending {source.name} ({width}x{height} at {source.video.fps:g} fps) to room "
+                f"{args.room} as {args.name}"
+            )
+            source.video.resync(len(buffered))
+            where = source.path if source.path is not None else args.camera
+            sound = sound_as_asked(
+                args, where, source.video.is_camera, True, endpoint.publish, self.tell, max_bps
+            )
+            sent = with_sound(itertools.chain(restamped(buffered), frames), sound, source.video.fps)
+            self.report = run_sender(endpoint, encoder, sent, stop=self.stop)
+            self.link.delete_snapshot()  # a joiner from now on finds no stale face
+        finally:
+            source.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    from facewire.call import StopSignal, _quiet_opencv, say
+    from facewire.relay import Relay, RelayConfig, free_port
+    from facewire.room_link import RoomLink, _hidden
+    from facewire.room_peer import RoomReceiver
+
+    _quiet_opencv()
+    subjects.check_name(args.room, "room")
+    subjects.check_name(args.name, "participant")
+    key = RoomKey.load(args.key)
+    if key.room != args.room:
+        raise ValueError(f"{args.key} is room {key.room}'s key, not room {args.room}'s")
+    if args.frames is not None and args.frames < 1:
+        raise ValueError(f"--frames must be at least 1, got {args.frames}")
+    record_dir = Path(args.record_dir) if args.record_dir else None
+    if record_dir is not None:
+        record_dir.mkdir(parents=True, exist_ok=True)
+    sealer = Sealer(key.base_key(args.name), new_kid(args.name))
+    relay: Relay | None = None
+    link: RoomLink | None = None
+    receiver: RoomReceiver | None = None
+    sending: _SendingSide | None = None
+    with StopSignal() as stop:
+        try:
+            servers = list(args.server)
+            if not servers:
+                relay = Relay(RelayConfig(port=free_port())).start()
+                servers = [relay.config.client_url()]
+                say(f"no --server: a relay on loopback; others join with --server {servers[0]}")
+            receiver = RoomReceiver(
+                key, args.name,
+                get_snapshot=lambda name: link.get_snapshot(name) if link else None,
+                publish=lambda subject, data: link.publish(subject, data) if link else None,
+                sealer=sealer, notify=say, record_dir=record_dir,
+                on_keyframe_request=lambda request: (
+                    sending.endpoint.request_keyframe(request)
+                    if sending is not None and sending.endpoint is not None else None
+                ),
+            )  # fmt: skip
+            link = RoomLink(servers, args.room, args.name, receiver.deliver, say)
+            link.start()
+            say(f"joined room {args.room} as {args.name} through {link.connected_url}")
+            sending = _SendingSide(args, link, key, sealer, stop, say)
+            sending.thread.start()
+            # Receive until this one's stream has ended and no one else is left (or a stop).
+            while not stop() and not (sending.done.is_set() and not receiver.peers):
+                receiver.run_once(TICK_S)
+            if sending.error is not None:
+                raise sending.error
+        finally:
+            if sending is not None:
+                sending.done.wait(5.0)
+            if receiver is not None:
+                receiver.close()
+            if link is not None:
+                link.close()
+            if relay is not None:
+                relay.close()
+    stats = _stats(args, servers, link, receiver, sending, _hidden)
+    say(
+        "left room {}: {}".format(
+            args.room,
+            ", ".join(f"{n} {p['frames']} frames" for n, p in stats["peers"].items()) or "no one came",
+        )
+    )
+    if args.stats:
+        Path(args.stats).write_text(json.dumps(stats, indent=1))
+    return 0
+
+
+def _stats(args: argparse.Namespace, servers: list[str], link: Any, receiver: Any,
+           sending: Any, hidden: Any) -> dict[str, Any]:  # fmt: skip
+    sent: dict[str, Any] = {}
+    if sending is not None and sending.report is not None:
+        report = sending.report
+        sent = {
+            "frames_in": report.frames_in,
+            "packets": report.packets,
+            "keyframe_requests": report.keyframe_requests,
+            "sender_fps": round(report.fps, 1),
+            **sending.endpoint.figures(),
+        }
+    return {
+        "room": args.room,
+        "name": args.name,
+        "servers": [hidden(s) for s in servers],
+        "reconnects": link.reconnects if link is not None else 0,
+        "sent": sent,
+        "peers": receiver.stats() if receiver is not None else {},
+        "rejected": dict(receiver.rejected) if receiver is not None else {},
+    }

@@ -1,0 +1,184 @@
+"""A room participant's connection to the relay: nats-py's asyncio client in a thread of its
+own, so the sender's and the receiver's loops (plain threads, like a two-party call's) publish
+and read without an event loop of their own.
+
+What arrives is handed to ``on_message(subject, data, arrival_us)`` on the link's thread; it
+must only queue it. The snapshot bucket is JetStream KV, in memory (a snapshot is state of a
+live call, not worth a disk).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any
+
+from protocol import subjects
+from protocol.clock import now_us
+
+logger = logging.getLogger(__name__)
+
+CONNECT_TIMEOUT_S = 5.0
+CALL_TIMEOUT_S = 5.0
+#: Reconnect quickly to another node of the cluster when the one in use dies.
+RECONNECT_WAIT_S = 0.25
+
+
+class RelayUnreachable(RuntimeError):
+    """No relay answered (the message says which and why, in one line)."""
+
+
+def _hidden(url: str) -> str:
+    """``url`` without its token (for messages)."""
+    scheme, _, rest = url.partition("://")
+    return f"{scheme}://{rest.rpartition('@')[2]}" if rest else url
+
+
+class RoomLink:
+    def __init__(
+        self,
+        servers: list[str],
+        room: str,
+        name: str,
+        on_message: Callable[[str, bytes, int], None],
+        notify: Callable[[str], None],
+    ) -> None:
+        self.servers = servers
+        self.room = room
+        self.name = name
+        self.on_message = on_message
+        self.notify = notify
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="nats", daemon=True)
+        self._nc: Any = None
+        self._kv: Any = None
+        self.reconnects = 0
+        self._closing = False
+        self.published = 0
+        self.published_bytes = 0
+
+    # --- on the caller's thread ------------------------------------------------------------
+
+    def start(self) -> None:
+        """Connect, open the room's bucket and subscribe; RelayUnreachable when it cannot."""
+        self._thread.start()
+        try:
+            self._call(self._start(), CONNECT_TIMEOUT_S + CALL_TIMEOUT_S)
+        except RelayUnreachable:
+            self.close()
+            raise
+        except Exception as exc:  # nats-py's errors name no server: say which
+            self.close()
+            where = ", ".join(_hidden(s) for s in self.servers)
+            raise RelayUnreachable(f"cannot join through {where}: {exc or type(exc).__name__}")
+
+    def _call(self, coroutine: Any, timeout: float = CALL_TIMEOUT_S) -> Any:
+        future: Future[Any] = asyncio.run_coroutine_threadsafe(coroutine, self._loop)
+        return future.result(timeout)
+
+    def publish(self, subject: str, data: bytes) -> None:
+        """Queue ``data`` for ``subject`` (never blocks: a bundle must not wait for the net)."""
+        self.published += 1
+        self.published_bytes += len(data)
+        self._loop.call_soon_threadsafe(self._publish, subject, data)
+
+    def put_snapshot(self, data: bytes) -> None:
+        self._call(self._kv.put(self.name, data))
+
+    def get_snapshot(self, name: str) -> bytes | None:
+        """``name``'s sealed snapshot, None when the bucket has none."""
+        return self._call(self._get(name))
+
+    def delete_snapshot(self) -> None:
+        self._call(self._kv.delete(self.name))
+
+    @property
+    def connected_url(self) -> str | None:
+        nc = self._nc
+        if nc is None or nc.connected_url is None:
+            return None
+        url = nc.connected_url
+        return f"nats://{url.hostname}:{url.port}"
+
+    def close(self) -> None:
+        self._closing = True
+        if self._thread.is_alive():
+            try:
+                self._call(self._close(), CALL_TIMEOUT_S)
+            except Exception as exc:  # leaving anyway
+                logger.info("closing the NATS connection: %s", exc)
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(CALL_TIMEOUT_S)
+        if not self._loop.is_running():
+            self._loop.close()
+
+    # --- on the link's thread --------------------------------------------------------------
+
+    async def _start(self) -> None:
+        import nats
+        from nats.js.api import KeyValueConfig, StorageType
+
+        failures: list[str] = []
+
+        async def error(exc: Exception) -> None:
+            failures.append(str(exc) or type(exc).__name__)
+            logger.info("nats: %s", exc)
+
+        async def disconnected() -> None:
+            if not self._closing:
+                self.notify("lost the relay; reconnecting")
+
+        async def reconnected() -> None:
+            self.reconnects += 1
+            self.notify(f"reconnected to the relay at {self.connected_url}")
+
+        try:
+            self._nc = await nats.connect(
+                self.servers,
+                name=f"facewire {self.room}/{self.name}",
+                connect_timeout=2,
+                allow_reconnect=True,
+                reconnect_time_wait=RECONNECT_WAIT_S,
+                max_reconnect_attempts=120,
+                ping_interval=2,
+                max_outstanding_pings=2,
+                no_echo=True,  # our own bundles do not come back to us
+                error_cb=error,
+                disconnected_cb=disconnected,
+                reconnected_cb=reconnected,
+            )
+        except Exception as exc:
+            where = ", ".join(_hidden(s) for s in self.servers)
+            why = failures[-1] if failures else (str(exc) or type(exc).__name__)
+            raise RelayUnreachable(f"cannot reach the relay at {where}: {why}") from None
+        js = self._nc.jetstream()
+        config = KeyValueConfig(
+            bucket=subjects.bucket(self.room), storage=StorageType.MEMORY, history=1
+        )
+        self._kv = await js.create_key_value(config)
+        await self._nc.subscribe(subjects.media(self.room), cb=self._deliver)
+        await self._nc.subscribe(subjects.control(self.room, self.name), cb=self._deliver)
+        await self._nc.flush()
+
+    async def _deliver(self, msg: Any) -> None:
+        self.on_message(msg.subject, msg.data, now_us())
+
+    def _publish(self, subject: str, data: bytes) -> None:
+        if self._nc is not None and not self._nc.is_closed:
+            asyncio.ensure_future(self._nc.publish(subject, data))
+
+    async def _get(self, name: str) -> bytes | None:
+        from nats.js.errors import KeyNotFoundError
+
+        try:
+            entry = await self._kv.get(name)
+        except KeyNotFoundError:  # also a deleted key
+            return None
+        return bytes(entry.value) if entry.value else None
+
+    async def _close(self) -> None:
+        if self._nc is not None and not self._nc.is_closed:
+            await self._nc.drain()

@@ -1,0 +1,389 @@
+"""The other participants of a room, as this one receives them.
+
+:class:`RoomReceiver` takes every message the link delivers: it opens it (protocol/sframe.py),
+and a media bundle from someone new first fetches that one's snapshot from the room's
+bucket (the Clone pattern: subscribed first, then the state, then the updates), builds a
+:class:`Peer` (the two-party receiver's FaceDecoder) and asks that sender for a keyframe on
+its own control subject. A peer leaves on its Bye, or when nothing of it came for
+PEER_GONE_S.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol import subjects
+from protocol.bundle import FRAGMENT, BundleError, Fragment, Reassembly, unpack
+from protocol.channels import ChainBroken
+from protocol.clock import now_us
+from protocol.constants import PROTOCOL_VERSION
+from protocol.packets import (
+    AudioFrame,
+    Bye,
+    DeltaFrame,
+    Heartbeat,
+    KeyFrame,
+    KeyframeRequest,
+    PacketError,
+    RemPatch,
+    Snapshot,
+    decode,
+)
+from protocol.sframe import Header, Opener, RoomKey, Sealer, SFrameError, kid_is_of
+
+logger = logging.getLogger(__name__)
+
+#: A participant silent this long has left (it heartbeats at least every second).
+PEER_GONE_S = 2.5
+#: Keyframe requests to one sender, at most one per this long.
+KEYFRAME_RETRY_S = 0.5
+#: A sender whose messages do not open is looked at again after this long (it may rejoin).
+LOCKED_RETRY_S = 5.0
+#: The longest gap in a recording filled by holding the last picture (frames).
+MAX_HOLD_FRAMES = 60
+SNAPSHOT, MEDIA, CONTROL = b"s", b"m", b"c"
+
+
+def _summary(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    a = np.asarray(values)
+    return {
+        "p50": round(float(np.percentile(a, 50)), 2),
+        "p99": round(float(np.percentile(a, 99)), 2),
+        "max": round(float(a.max()), 2),
+    }
+
+
+def _nats_bytes(subject: str, data: bytes) -> int:
+    """A message's bytes on the NATS connection: ``MSG subject sid size\\r\\n``, the payload,
+    ``\\r\\n`` (a one-digit subscription id; TCP/IP headers not counted)."""
+    return len(f"MSG {subject} 1 {len(data)}\r\n") + len(data) + 2
+
+
+class Peer:
+    """One other participant: its decoder, its recording, its figures."""
+
+    def __init__(self, name: str, kid: int, snapshot: Snapshot, record: Path | None) -> None:
+        from receiver.decoder import FaceDecoder
+        from receiver.interpolation import Painter
+
+        self.name = name
+        self.kid = kid
+        self.snapshot = snapshot
+        self.decoder = FaceDecoder(snapshot)
+        self.painter = Painter(self.decoder) if record is not None else None
+        self.recorder: Any = None
+        if record is not None:
+            from receiver.recording import BackgroundRecorder
+
+            self.recorder = BackgroundRecorder(
+                record, snapshot.width, snapshot.height, snapshot.fps
+            )
+        self.reassembly = Reassembly()
+        self.last_heard = time.monotonic()
+        self.next_seq: int | None = None  # the recording's next frame
+        self.last_picture: np.ndarray | None = None
+        self.last_request = -float("inf")
+        self.chain_broken = True  # until the keyframe that starts the chain
+
+    def take(self, packet: object, figures: PeerFigures) -> bool:
+        """Decode (and record) one packet; True when a keyframe should be asked for."""
+        if isinstance(packet, (KeyFrame, DeltaFrame)):
+            try:
+                values = self.decoder.decode(packet)
+            except ChainBroken as exc:
+                logger.debug("%s: %s", self.name, exc)
+                figures.chain_breaks += 1
+                self.chain_broken = True
+                return True
+            except PacketError as exc:
+                logger.debug("%s: dropped frame packet: %s", self.name, exc)
+                figures.malformed += 1
+                return True
+            self.chain_broken = False
+            figures.frames += 1
+            figures.latency_ms.append((now_us() - values.capture_us) / 1000.0)
+            if self.painter is not None:
+                self._record(values)
+        elif isinstance(packet, RemPatch):
+            self.decoder.offer(packet)
+        elif isinstance(packet, AudioFrame):
+            figures.audio_packets += 1
+        return False
+
+    def _record(self, values: Any) -> None:
+        assert self.painter is not None and self.recorder is not None
+        picture = self.painter.exact(values)
+        if self.next_seq is not None and self.last_picture is not None:
+            gap = min(values.seq - self.next_seq, MAX_HOLD_FRAMES)
+            for _ in range(max(0, gap)):  # frames with no packet hold the last picture
+                self.recorder.write(self.last_picture)
+        self.recorder.write(picture)
+        self.last_picture = picture
+        self.next_seq = values.seq + 1
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+        self.decoder.close()
+
+
+class PeerFigures:
+    """What this participant measured of one other, over all of its sessions."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self.latency_ms: list[float] = []
+        self.sealed_bytes = 0
+        self.nats_bytes = 0
+        self.messages = 0
+        self.first_us: int | None = None
+        self.last_us = 0
+        self.keyframe_requests = 0
+        self.chain_breaks = 0
+        self.malformed = 0
+        self.audio_packets = 0
+        self.sessions = 0
+        self.left: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        span_s = (self.last_us - (self.first_us or self.last_us)) / 1e6
+        def kbps(n: int) -> float:
+            return round(n * 8 / span_s / 1000, 2) if span_s > 0 else 0.0
+
+        return {
+            "frames": self.frames,
+            "latency_ms": _summary(self.latency_ms),
+            "kbps": {"sealed": kbps(self.sealed_bytes), "nats": kbps(self.nats_bytes)},
+            "messages": self.messages,
+            "bytes": {"sealed": self.sealed_bytes, "nats": self.nats_bytes},
+            "sessions": self.sessions,
+            "keyframe_requests": self.keyframe_requests,
+            "chain_breaks": self.chain_breaks,
+            "malformed": self.malformed,
+            "audio_packets": self.audio_packets,
+            "left": self.left,
+        }
+
+
+class RoomReceiver:
+    """Everything that arrives, opened and handed to the right peer (one thread runs it)."""
+
+    def __init__(
+        self,
+        key: RoomKey,
+        name: str,
+        get_snapshot: Callable[[str], bytes | None],
+        publish: Callable[[str, bytes], None],
+        sealer: Sealer,
+        notify: Callable[[str], None],
+        record_dir: Path | None = None,
+        on_keyframe_request: Callable[[KeyframeRequest], None] | None = None,
+    ) -> None:
+        self.key = key
+        self.name = name
+        self.get_snapshot = get_snapshot
+        self.publish = publish
+        self.sealer = sealer  # this participant's own (its keyframe requests are sealed too)
+        self.notify = notify
+        self.record_dir = record_dir
+        self.on_keyframe_request = on_keyframe_request
+        self.inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue()
+        self.opener = Opener()
+        self.peers: dict[str, Peer] = {}
+        self.figures: dict[str, PeerFigures] = {}
+        self.locked: dict[str, float] = {}  # name -> when its messages last failed to open
+        self.rejected: Counter[str] = Counter()  # messages that did not open, per sender
+        self.told: set[str] = set()
+
+    def deliver(self, subject: str, data: bytes, arrival_us: int) -> None:
+        """The link's callback (its thread): queue only."""
+        self.inbox.put((subject, data, arrival_us))
+
+    def run_once(self, timeout_s: float) -> None:
+        """Handle what came within ``timeout_s``, then drop peers gone silent."""
+        try:
+            item: tuple[str, bytes, int] | None = self.inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            item = None
+        while item is not None:
+            self._handle(*item)
+            try:
+                item = self.inbox.get_nowait()
+            except queue.Empty:
+                item = None
+        now = time.monotonic()
+        for peer in list(self.peers.values()):
+            if now - peer.last_heard > PEER_GONE_S:
+                self._drop(peer, f"silent for {PEER_GONE_S:g} s")
+
+    def _handle(self, subject: str, data: bytes, arrival_us: int) -> None:
+        try:
+            kind, sender, _ = subjects.parse(subject)
+            subjects.check_name(sender, "participant")
+        except ValueError as exc:
+            logger.debug("%s", exc)
+            return
+        if sender == self.name:
+            return
+        if kind == "c":
+            self._control(sender, data)
+            return
+        figures = self.figures.setdefault(sender, PeerFigures())
+        peer = self._peer(sender, data)
+        if peer is None:
+            return
+        try:
+            bundle = self.opener.open(data, self.key.metadata(sender, MEDIA))
+        except SFrameError as exc:
+            self._rejected(sender, exc)
+            return
+        peer.last_heard = time.monotonic()
+        figures.messages += 1
+        figures.sealed_bytes += len(data)
+        figures.nats_bytes += _nats_bytes(subject, data)
+        figures.first_us = figures.first_us or arrival_us
+        figures.last_us = arrival_us
+        want_keyframe = False
+        for packet in self._packets(peer, bundle, figures):
+            if isinstance(packet, Bye):
+                self._drop(peer, "said bye")
+                return
+            if not isinstance(packet, Heartbeat):
+                want_keyframe |= peer.take(packet, figures)
+        if want_keyframe or peer.chain_broken:
+            self._ask_keyframe(peer, figures)
+
+    def _peer(self, sender: str, data: bytes) -> Peer | None:
+        """The peer ``data`` comes from, built from its snapshot when it is new (or a new run
+        of it: another KID); None while its messages cannot be opened."""
+        try:
+            kid = Header.parse(data)[0].kid
+        except SFrameError as exc:
+            self._rejected(sender, exc)
+            return None
+        peer = self.peers.get(sender)
+        if peer is not None and peer.kid == kid:
+            return peer
+        if not kid_is_of(kid, sender):
+            self._rejected(sender, SFrameError(f"KID {kid:#x} is not {sender}'s"))
+            return None
+        if time.monotonic() - self.locked.get(sender, -LOCKED_RETRY_S) < LOCKED_RETRY_S:
+            return None
+        if peer is not None:
+            self._drop(peer, "restarted")
+        self.opener.add_key(kid, self.key.base_key(sender))
+        sealed = self.get_snapshot(sender)
+        if sealed is None:
+            logger.info("%s sends but has no snapshot in the room's bucket yet", sender)
+            return None
+        try:
+            snapshot = decode(self.opener.open(sealed, self.key.metadata(sender, SNAPSHOT), False))
+            if not isinstance(snapshot, Snapshot):
+                raise PacketError(f"expected a Snapshot, got {type(snapshot).__name__}")
+        except SFrameError as exc:
+            self.locked[sender] = time.monotonic()
+            self._rejected(sender, exc)
+            return None
+        except PacketError as exc:
+            self.locked[sender] = time.monotonic()
+            logger.info("%s's snapshot: %s", sender, exc)
+            return None
+        record = None
+        if self.record_dir is not None:
+            record = self.record_dir / f"{sender}.mp4"
+        peer = Peer(sender, kid, snapshot, record)
+        self.peers[sender] = peer
+        self.figures[sender].sessions += 1
+        self.locked.pop(sender, None)
+        self.notify(
+            f"{sender} joined: {snapshot.width}x{snapshot.height} at {snapshot.fps:g} fps"
+            + (f", recording to {record}" if record is not None else "")
+        )
+        return peer
+
+    def _packets(self, peer: Peer, bundle: bytes, figures: PeerFigures) -> list[object]:
+        out = []
+        try:
+            elements = list(unpack(bundle))
+        except BundleError:
+            figures.malformed += 1
+            return out
+        for element in elements:
+            data: bytes | None = element
+            if element[0] == FRAGMENT:
+                try:
+                    data = peer.reassembly.add(Fragment.parse(element))
+                except BundleError:
+                    data = None
+                    figures.malformed += 1
+            elif element[0] >> 4 != PROTOCOL_VERSION:
+                data = None
+                figures.malformed += 1
+            if data is None:
+                continue
+            try:
+                out.append(decode(data))
+            except PacketError as exc:
+                logger.debug("%s: %s", peer.name, exc)
+                figures.malformed += 1
+        return out
+
+    def _ask_keyframe(self, peer: Peer, figures: PeerFigures) -> None:
+        now = time.monotonic()
+        if now - peer.last_request < KEYFRAME_RETRY_S:
+            return
+        peer.last_request = now
+        figures.keyframe_requests += 1
+        seq = peer.next_seq or peer.snapshot.seq
+        request = bytes(KeyframeRequest(min(seq, 2**32 - 1)))
+        sealed = self.sealer.seal(request, self.key.metadata(self.name, CONTROL + peer.name.encode()))
+        self.publish(subjects.control(self.key.room, peer.name, self.name), sealed)
+
+    def _control(self, sender: str, data: bytes) -> None:
+        try:
+            kid = Header.parse(data)[0].kid
+            if not self.opener.knows(kid):
+                if not kid_is_of(kid, sender):
+                    raise SFrameError(f"KID {kid:#x} is not {sender}'s")
+                self.opener.add_key(kid, self.key.base_key(sender))
+            metadata = self.key.metadata(sender, CONTROL + self.name.encode())
+            packet = decode(self.opener.open(data, metadata))
+        except (SFrameError, PacketError) as exc:
+            self._rejected(sender, exc)
+            return
+        if isinstance(packet, KeyframeRequest) and self.on_keyframe_request is not None:
+            logger.info("%s asks for a keyframe", sender)
+            self.on_keyframe_request(packet)
+
+    def _rejected(self, sender: str, exc: Exception) -> None:
+        self.rejected[sender] += 1
+        logger.debug("from %s: %s", sender, exc)
+        if sender not in self.told and "authenticate" in str(exc):
+            self.told.add(sender)
+            self.notify(
+                f"{sender}'s messages do not open with this room key: is --key the key of "
+                f"room {self.key.room}? ({sender} stays hidden)"
+            )
+
+    def _drop(self, peer: Peer, why: str) -> None:
+        self.peers.pop(peer.name, None)
+        self.figures[peer.name].left = why
+        peer.close()
+        self.notify(f"{peer.name} left ({why})")
+
+    def close(self) -> None:
+        for peer in list(self.peers.values()):
+            self._drop(peer, "this participant left")
+
+    def stats(self) -> dict[str, Any]:
+        return {name: f.as_dict() for name, f in self.figures.items()}
