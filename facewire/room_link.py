@@ -25,6 +25,7 @@ CONNECT_TIMEOUT_S = 5.0
 CALL_TIMEOUT_S = 5.0
 #: Reconnect quickly to another node of the cluster when the one in use dies.
 RECONNECT_WAIT_S = 0.25
+MAX_RECONNECT_ATTEMPTS = 120  # 30 s of trying, then the call ends
 
 
 class RelayUnreachable(RuntimeError):
@@ -66,7 +67,7 @@ class RoomLink:
         """Connect, open the room's bucket and subscribe; RelayUnreachable when it cannot."""
         self._thread.start()
         try:
-            self._call(self._start(), CONNECT_TIMEOUT_S + CALL_TIMEOUT_S)
+            self._call(self._start(), CONNECT_TIMEOUT_S + 2 * CALL_TIMEOUT_S)
         except RelayUnreachable:
             self.close()
             raise
@@ -136,19 +137,23 @@ class RoomLink:
             self.notify(f"reconnected to the relay at {self.connected_url}")
 
         try:
-            self._nc = await nats.connect(
-                self.servers,
-                name=f"facewire {self.room}/{self.name}",
-                connect_timeout=2,
-                allow_reconnect=True,
-                reconnect_time_wait=RECONNECT_WAIT_S,
-                max_reconnect_attempts=120,
-                ping_interval=2,
-                max_outstanding_pings=2,
-                no_echo=True,  # our own bundles do not come back to us
-                error_cb=error,
-                disconnected_cb=disconnected,
-                reconnected_cb=reconnected,
+            # nats-py retries a first connection as it would a lost one: bound it.
+            self._nc = await asyncio.wait_for(
+                nats.connect(
+                    self.servers,
+                    name=f"facewire {self.room}/{self.name}",
+                    connect_timeout=2,
+                    allow_reconnect=True,
+                    reconnect_time_wait=RECONNECT_WAIT_S,
+                    max_reconnect_attempts=MAX_RECONNECT_ATTEMPTS,
+                    ping_interval=2,
+                    max_outstanding_pings=2,
+                    no_echo=True,  # our own bundles do not come back to us
+                    error_cb=error,
+                    disconnected_cb=disconnected,
+                    reconnected_cb=reconnected,
+                ),
+                CONNECT_TIMEOUT_S,
             )
         except Exception as exc:
             where = ", ".join(_hidden(s) for s in self.servers)
