@@ -25,6 +25,8 @@ CONNECT_TIMEOUT_S = 5.0
 CALL_TIMEOUT_S = 5.0
 #: Reconnect quickly to another node of the cluster when the one in use dies.
 RECONNECT_WAIT_S = 0.25
+#: A cluster that has just started elects JetStream's leader before a bucket can be made.
+BUCKET_WAIT_S = 10.0
 MAX_RECONNECT_ATTEMPTS = 120  # 30 s of trying, then the call ends
 
 
@@ -67,7 +69,7 @@ class RoomLink:
         """Connect, open the room's bucket and subscribe; RelayUnreachable when it cannot."""
         self._thread.start()
         try:
-            self._call(self._start(), CONNECT_TIMEOUT_S + 2 * CALL_TIMEOUT_S)
+            self._call(self._start(), CONNECT_TIMEOUT_S + BUCKET_WAIT_S + CALL_TIMEOUT_S)
         except RelayUnreachable:
             self.close()
             raise
@@ -120,7 +122,6 @@ class RoomLink:
 
     async def _start(self) -> None:
         import nats
-        from nats.js.api import KeyValueConfig, StorageType
 
         failures: list[str] = []
 
@@ -159,14 +160,35 @@ class RoomLink:
             where = ", ".join(_hidden(s) for s in self.servers)
             why = failures[-1] if failures else (str(exc) or type(exc).__name__)
             raise RelayUnreachable(f"cannot reach the relay at {where}: {why}") from None
-        js = self._nc.jetstream()
-        config = KeyValueConfig(
-            bucket=subjects.bucket(self.room), storage=StorageType.MEMORY, history=1
-        )
-        self._kv = await js.create_key_value(config)
+        self._kv = await self._bucket()
         await self._nc.subscribe(subjects.media(self.room), cb=self._deliver)
         await self._nc.subscribe(subjects.control(self.room, self.name), cb=self._deliver)
         await self._nc.flush()
+
+    async def _bucket(self) -> Any:
+        """The room's KV bucket, made by whoever comes first: three replicas on a cluster of
+        three or more nodes (the snapshots outlive a node), else one."""
+        from nats.js.api import KeyValueConfig, StorageType
+        from nats.js.errors import BadRequestError, ServiceUnavailableError
+
+        js = self._nc.jetstream()
+        nodes = {(u.hostname, u.port) for u in self._nc.servers}
+        config = KeyValueConfig(
+            bucket=subjects.bucket(self.room),
+            storage=StorageType.MEMORY,
+            history=1,
+            replicas=3 if len(nodes) >= 3 else 1,
+        )
+        deadline = asyncio.get_running_loop().time() + BUCKET_WAIT_S
+        while True:
+            try:
+                return await js.create_key_value(config)
+            except BadRequestError:  # made already, by someone who saw the cluster otherwise
+                return await js.key_value(config.bucket)
+            except ServiceUnavailableError:  # a new cluster still electing its leader
+                if asyncio.get_running_loop().time() > deadline:
+                    raise
+                await asyncio.sleep(0.25)
 
     async def _deliver(self, msg: Any) -> None:
         self.on_message(msg.subject, msg.data, now_us())

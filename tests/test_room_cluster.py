@@ -1,0 +1,77 @@
+"""A room on a cluster of three relays (three nats-server processes with routes, loopback):
+the node a sender uses is killed mid-call; the sender reconnects to another node and the
+others keep receiving its stream, without a new snapshot."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from facewire.relay import Relay, RelayConfig, free_port
+from protocol.sframe import RoomKey
+from tests.cli_call import Facewire, kill_all
+
+pytest.importorskip("nats")
+SMALL = ("--max-size", "320x240", "--no-sound")
+
+
+@pytest.fixture
+def cluster() -> Iterator[list[Relay]]:
+    ports = [(free_port(), free_port()) for _ in range(3)]
+    token = "cluster-test-token"
+    relays = []
+    try:
+        for port, route in ports:
+            config = RelayConfig(port=port, token=token, name=f"n{port}")
+            config.cluster = ("127.0.0.1", route)
+            config.routes = [f"nats-route://127.0.0.1:{r}" for p, r in ports if r != route]
+            relays.append(Relay(config).start())
+        yield relays
+    finally:
+        for relay in relays:
+            relay.close()
+
+
+@pytest.mark.timeout(500)
+def test_a_node_dies_under_a_sender(cluster: list[Relay], tmp_path: Path) -> None:
+    key = tmp_path / "standup.room"
+    RoomKey.generate("standup").write(key)
+    servers = [arg for r in cluster for arg in ("--server", r.config.client_url())]
+    by_port = {r.config.port: r for r in cluster}
+    people: dict[str, Facewire] = {}
+
+    def join(name: str, *extra: str) -> Facewire:
+        people[name] = Facewire(
+            "room", "--room", "standup", "--name", name, "--key", str(key), *servers,
+            "--stats", str(tmp_path / f"{name}.json"), *SMALL, *extra, name=name,
+        )  # fmt: skip
+        return people[name]
+
+    try:
+        alice = join("alice", "--loop", "--frames", "600")
+        line = alice.expect("joined room standup as alice through")
+        alice_port = int(re.search(r":(\d+)$", line).group(1))  # type: ignore[union-attr]
+        bob = join("bob", "--loop", "--frames", "450")
+        carol = join("carol", "--loop", "--frames", "450")
+        bob.expect("alice joined")
+        carol.expect("alice joined")
+        dave = join("dave", "--frames", "150")  # joins late
+        dave.expect("alice joined")
+        by_port[alice_port].stop()  # the node alice's stream goes through
+        alice.expect("reconnected to the relay at")
+        for person in people.values():
+            assert person.wait(400) == 0, person.output()
+    finally:
+        kill_all(*people.values())
+    alice_stats = json.loads((tmp_path / "alice.json").read_text())
+    assert alice_stats["reconnects"] >= 1
+    for name in ("bob", "carol", "dave"):
+        seen = json.loads((tmp_path / f"{name}.json").read_text())["peers"]["alice"]
+        # Alice's stream went on through another node: one session, no new snapshot, and
+        # it ended with her Bye, not with her silence.
+        assert seen["sessions"] == 1 and seen["left"] == "said bye", (name, seen)
+        assert seen["frames"] > 0
