@@ -52,6 +52,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help=f"this participant's stream budget (default {DEFAULT_BUDGET_BPS / 1000:g})",
     )  # fmt: skip
     p.add_argument("--record-dir", metavar="DIR", help="record each peer to DIR/NAME.mp4")
+    p.add_argument(
+        "--view", metavar="HOST:PORT",
+        help="serve the gallery (every peer with its name) as a web page, e.g. 127.0.0.1:8080",
+    )  # fmt: skip
     p.add_argument("--stats", metavar="FILE.json", help="write the room's figures as JSON")
     p.set_defaults(func=run)
 
@@ -117,7 +121,7 @@ class _SendingSide:
 def run(args: argparse.Namespace) -> int:
     from facewire.call import StopSignal, _quiet_opencv, say
     from facewire.relay import Relay, RelayConfig, free_port
-    from facewire.room_link import RoomLink, _hidden
+    from facewire.room_link import MAX_RECONNECT_ATTEMPTS, RECONNECT_WAIT_S, RoomLink, _hidden
     from facewire.room_peer import RoomReceiver
 
     _quiet_opencv()
@@ -136,31 +140,51 @@ def run(args: argparse.Namespace) -> int:
     link: RoomLink | None = None
     receiver: RoomReceiver | None = None
     sending: _SendingSide | None = None
+    view: Any = None
+    tell = say
     with StopSignal() as stop:
         try:
+            gallery = None
+            if args.view:
+                from facewire.room_gallery import Gallery
+                from receiver.live_view import LiveView, parse_view_address
+
+                view = LiveView(*parse_view_address(args.view))
+                gallery = Gallery(view)
+
+                def tell(line: str) -> None:
+                    say(line)
+                    view.event(line)
+
+                tell(f"gallery on {view.url}")
             servers = list(args.server)
             if not servers:
                 relay = Relay(RelayConfig(port=free_port())).start()
                 servers = [relay.config.client_url()]
-                say(f"no --server: a relay on loopback; others join with --server {servers[0]}")
+                tell(f"no --server: a relay on loopback; others join with --server {servers[0]}")
             receiver = RoomReceiver(
                 key, args.name,
                 get_snapshot=lambda name: link.get_snapshot(name) if link else None,
                 publish=lambda subject, data: link.publish(subject, data) if link else None,
-                sealer=sealer, notify=say, record_dir=record_dir,
+                sealer=sealer, notify=tell, record_dir=record_dir, gallery=gallery,
                 on_keyframe_request=lambda request: (
                     sending.endpoint.request_keyframe(request)
                     if sending is not None and sending.endpoint is not None else None
                 ),
             )  # fmt: skip
-            link = RoomLink(servers, args.room, args.name, receiver.deliver, say)
+            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell)
             link.start()
-            say(f"joined room {args.room} as {args.name} through {link.connected_url}")
-            sending = _SendingSide(args, link, key, sealer, stop, say)
+            tell(f"joined room {args.room} as {args.name} through {link.connected_url}")
+            sending = _SendingSide(args, link, key, sealer, stop, tell)
             sending.thread.start()
             # Receive until this one's stream has ended and no one else is left (or a stop).
             while not stop() and not (sending.done.is_set() and not receiver.peers):
                 receiver.run_once(TICK_S)
+                if link.lost:
+                    raise RuntimeError(
+                        f"lost the relay: no node of {', '.join(_hidden(s) for s in servers)} "
+                        f"answered for {MAX_RECONNECT_ATTEMPTS * RECONNECT_WAIT_S:g} s"
+                    )
             if sending.error is not None:
                 raise sending.error
         finally:
@@ -172,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
                 link.close()
             if relay is not None:
                 relay.close()
+            if view is not None:
+                view.close()
     stats = _stats(args, servers, link, receiver, sending, _hidden)
     say(
         "left room {}: {}".format(

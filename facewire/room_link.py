@@ -60,6 +60,8 @@ class RoomLink:
         self._kv: Any = None
         self.reconnects = 0
         self._closing = False
+        #: The connection closed for good (no node answered for MAX_RECONNECT_ATTEMPTS).
+        self.lost = False
         self.published = 0
         self.published_bytes = 0
 
@@ -133,6 +135,10 @@ class RoomLink:
             if not self._closing:
                 self.notify("lost the relay; reconnecting")
 
+        async def closed() -> None:
+            if not self._closing:
+                self.lost = True
+
         async def reconnected() -> None:
             self.reconnects += 1
             self.notify(f"reconnected to the relay at {self.connected_url}")
@@ -153,6 +159,7 @@ class RoomLink:
                     error_cb=error,
                     disconnected_cb=disconnected,
                     reconnected_cb=reconnected,
+                    closed_cb=closed,
                 ),
                 CONNECT_TIMEOUT_S,
             )

@@ -72,7 +72,14 @@ def _nats_bytes(subject: str, data: bytes) -> int:
 class Peer:
     """One other participant: its decoder, its recording, its figures."""
 
-    def __init__(self, name: str, kid: int, snapshot: Snapshot, record: Path | None) -> None:
+    def __init__(
+        self,
+        name: str,
+        kid: int,
+        snapshot: Snapshot,
+        record: Path | None,
+        gallery: Any = None,
+    ) -> None:
         from receiver.decoder import FaceDecoder
         from receiver.interpolation import Painter
 
@@ -80,7 +87,10 @@ class Peer:
         self.kid = kid
         self.snapshot = snapshot
         self.decoder = FaceDecoder(snapshot)
-        self.painter = Painter(self.decoder) if record is not None else None
+        self.gallery = gallery
+        # Pictures are drawn only for someone: a recording or the gallery.
+        drawn = record is not None or gallery is not None
+        self.painter = Painter(self.decoder) if drawn else None
         self.recorder: Any = None
         if record is not None:
             from receiver.recording import BackgroundRecorder
@@ -110,19 +120,29 @@ class Peer:
                 figures.malformed += 1
                 return True
             self.chain_broken = False
+            now = now_us()
             figures.frames += 1
-            figures.latency_ms.append((now_us() - values.capture_us) / 1000.0)
+            latency_ms = (now - values.capture_us) / 1000.0
+            figures.latency_ms.append(latency_ms)
+            if figures.last_frame_us is not None:
+                gap_ms = (now - figures.last_frame_us) / 1000.0
+                figures.max_gap_ms = max(figures.max_gap_ms, gap_ms)
+            figures.last_frame_us = now
             if self.painter is not None:
-                self._record(values)
+                picture = self._record(values)
+                if self.gallery is not None:
+                    self.gallery.show(self.name, picture, latency_ms, 0)
         elif isinstance(packet, RemPatch):
             self.decoder.offer(packet)
         elif isinstance(packet, AudioFrame):
             figures.audio_packets += 1
         return False
 
-    def _record(self, values: Any) -> None:
-        assert self.painter is not None and self.recorder is not None
+    def _record(self, values: Any) -> np.ndarray:
+        assert self.painter is not None
         picture = self.painter.exact(values)
+        if self.recorder is None:
+            return picture
         if self.next_seq is not None and self.last_picture is not None:
             gap = min(values.seq - self.next_seq, MAX_HOLD_FRAMES)
             for _ in range(max(0, gap)):  # frames with no packet hold the last picture
@@ -130,6 +150,7 @@ class Peer:
         self.recorder.write(picture)
         self.last_picture = picture
         self.next_seq = values.seq + 1
+        return picture
 
     def close(self) -> None:
         if self.recorder is not None:
@@ -154,6 +175,8 @@ class PeerFigures:
         self.audio_packets = 0
         self.sessions = 0
         self.left: str | None = None
+        self.last_frame_us: int | None = None
+        self.max_gap_ms = 0.0  # the longest wait between two decoded frames (a freeze)
 
     def as_dict(self) -> dict[str, Any]:
         span_s = (self.last_us - (self.first_us or self.last_us)) / 1e6
@@ -166,6 +189,7 @@ class PeerFigures:
             "kbps": {"sealed": kbps(self.sealed_bytes), "nats": kbps(self.nats_bytes)},
             "messages": self.messages,
             "bytes": {"sealed": self.sealed_bytes, "nats": self.nats_bytes},
+            "max_gap_ms": round(self.max_gap_ms, 1),
             "sessions": self.sessions,
             "keyframe_requests": self.keyframe_requests,
             "chain_breaks": self.chain_breaks,
@@ -188,6 +212,7 @@ class RoomReceiver:
         notify: Callable[[str], None],
         record_dir: Path | None = None,
         on_keyframe_request: Callable[[KeyframeRequest], None] | None = None,
+        gallery: Any = None,
     ) -> None:
         self.key = key
         self.name = name
@@ -197,6 +222,7 @@ class RoomReceiver:
         self.notify = notify
         self.record_dir = record_dir
         self.on_keyframe_request = on_keyframe_request
+        self.gallery = gallery
         self.inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue()
         self.opener = Opener()
         self.peers: dict[str, Peer] = {}
@@ -253,6 +279,8 @@ class RoomReceiver:
         figures.nats_bytes += _nats_bytes(subject, data)
         figures.first_us = figures.first_us or arrival_us
         figures.last_us = arrival_us
+        if self.gallery is not None:
+            self.gallery.report.bytes_received[sender] = figures.nats_bytes
         want_keyframe = False
         for packet in self._packets(peer, bundle, figures):
             if isinstance(packet, Bye):
@@ -301,7 +329,9 @@ class RoomReceiver:
         record = None
         if self.record_dir is not None:
             record = self.record_dir / f"{sender}.mp4"
-        peer = Peer(sender, kid, snapshot, record)
+        peer = Peer(sender, kid, snapshot, record, self.gallery)
+        if self.gallery is not None:
+            self.gallery.joined(sender)
         self.peers[sender] = peer
         self.figures[sender].sessions += 1
         self.locked.pop(sender, None)
@@ -379,6 +409,8 @@ class RoomReceiver:
         self.peers.pop(peer.name, None)
         self.figures[peer.name].left = why
         peer.close()
+        if self.gallery is not None:
+            self.gallery.left(peer.name)
         self.notify(f"{peer.name} left ({why})")
 
     def close(self) -> None:
