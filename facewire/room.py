@@ -57,6 +57,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="serve the gallery (every peer with its name) as a web page, e.g. 127.0.0.1:8080",
     )  # fmt: skip
     p.add_argument("--stats", metavar="FILE.json", help="write the room's figures as JSON")
+    p.add_argument(
+        "--receive-only", action="store_true",
+        help="send nothing: watch the room (leaves once those who came have left)",
+    )  # fmt: skip
     p.set_defaults(func=run)
 
 
@@ -175,17 +179,25 @@ def run(args: argparse.Namespace) -> int:
             link = RoomLink(servers, args.room, args.name, receiver.deliver, tell)
             link.start()
             tell(f"joined room {args.room} as {args.name} through {link.connected_url}")
-            sending = _SendingSide(args, link, key, sealer, stop, tell)
-            sending.thread.start()
-            # Receive until this one's stream has ended and no one else is left (or a stop).
-            while not stop() and not (sending.done.is_set() and not receiver.peers):
+            if args.receive_only:
+                tell("receiving only; leaving once those who came have all left")
+            else:
+                sending = _SendingSide(args, link, key, sealer, stop, tell)
+                sending.thread.start()
+            # Receive until this one's stream has ended and no one else is left (or a stop);
+            # one only receiving waits for someone first.
+            while not stop():
+                sent = sending is None or sending.done.is_set()
+                came = any(f.sessions for f in receiver.figures.values())
+                if sent and not receiver.peers and (sending is not None or came):
+                    break
                 receiver.run_once(TICK_S)
                 if link.lost:
                     raise RuntimeError(
                         f"lost the relay: no node of {', '.join(_hidden(s) for s in servers)} "
                         f"answered for {MAX_RECONNECT_ATTEMPTS * RECONNECT_WAIT_S:g} s"
                     )
-            if sending.error is not None:
+            if sending is not None and sending.error is not None:
                 raise sending.error
         finally:
             if sending is not None:

@@ -1,0 +1,97 @@
+"""A room on this machine: S participants sending clips, W only receiving (decoding, not
+drawing), all through one relay (nats-server) on loopback.
+
+Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_room.py [--senders 8] [--watchers 8]
+       [--frames 300] [--clips DIR]
+
+Prints, per participant, its downlink on the NATS connection (kbit/s, the sum over the peers
+it received: sealed bundles and NATS's MSG lines, not TCP/IP) and the latency through the
+relay (capture to decoded, p50 of its peers' p50s, worst p99), then the relay's CPU (seconds
+and share of one core over the run) and its largest resident memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from facewire.relay import Relay, RelayConfig, free_port  # noqa: E402
+from protocol.sframe import RoomKey  # noqa: E402
+from sender.capture import demo_clip_path  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _relay_usage(pid: int) -> tuple[float, int]:
+    """(CPU seconds, resident bytes) of process ``pid`` so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    cpu = (int(fields[11]) + int(fields[12])) / TICK  # utime, stime
+    rss = int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    return cpu, rss
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--senders", type=int, default=8)
+    p.add_argument("--watchers", type=int, default=8)
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--clips", metavar="DIR", help="176x144 clips (*.mp4, *.avi); default: "
+                   "the bundled clip scaled to 176x144")  # fmt: skip
+    args = p.parse_args()
+    clips = sorted(Path(args.clips).glob("*_qcif.*")) if args.clips else []
+    work = Path(tempfile.mkdtemp(prefix="bench-room-"))
+    key = work / "bench.room"
+    RoomKey.generate("bench").write(key)
+    env = dict(os.environ, PYOPENGL_PLATFORM="egl")
+    with Relay(RelayConfig(port=free_port())) as relay:
+        assert relay.process is not None
+        url = relay.config.client_url()
+        base = [sys.executable, "-m", "facewire", "room", "--room", "bench", "--key", str(key),
+                "--server", url, "--no-sound"]  # fmt: skip
+        people = []
+        for i in range(args.watchers):
+            name = f"w{i}"
+            cmd = [*base, "--name", name, "--receive-only", "--stats", str(work / f"{name}.json")]
+            people.append(subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL))
+        for i in range(args.senders):
+            name = f"s{i}"
+            source = ["--input", str(clips[i % len(clips)])] if clips else ["--max-size", "176x144"]
+            cmd = [*base, "--name", name, *source, "--frames", str(args.frames),
+                   "--stats", str(work / f"{name}.json")]  # fmt: skip
+            people.append(subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL))
+        start_cpu, _ = _relay_usage(relay.process.pid)
+        started = time.monotonic()
+        most_rss = 0
+        while any(person.poll() is None for person in people):
+            most_rss = max(most_rss, _relay_usage(relay.process.pid)[1])
+            time.sleep(0.5)
+        elapsed = time.monotonic() - started
+        cpu = _relay_usage(relay.process.pid)[0] - start_cpu
+    print(f"room: {args.senders} sending, {args.watchers} receiving only, {args.frames} frames "
+          f"each, {len(clips) or 1} clip(s); {elapsed:.1f} s")  # fmt: skip
+    print("participant  peers  frames  downlink kbit/s  latency p50 ms  p99 ms")
+    for person in sorted(work.glob("*.json")):
+        stats = json.loads(person.read_text())
+        peers = stats["peers"].values()
+        p50 = [p["latency_ms"]["p50"] for p in peers if p["latency_ms"]]
+        p99 = [p["latency_ms"]["p99"] for p in peers if p["latency_ms"]]
+        print(f"{stats['name']:<11}  {len(peers):>5}  {sum(p['frames'] for p in peers):>6}  "
+              f"{sum(p['kbps']['nats'] for p in peers):>15.1f}  "
+              f"{statistics.median(p50) if p50 else float('nan'):>14.0f}  "
+              f"{max(p99) if p99 else float('nan'):>6.0f}")  # fmt: skip
+    print(f"relay: {cpu:.2f} CPU s over {elapsed:.1f} s ({100 * cpu / elapsed:.1f}% of a core), "
+          f"largest RSS {most_rss / 2**20:.1f} MiB")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
