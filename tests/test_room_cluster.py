@@ -75,3 +75,5 @@ def test_a_node_dies_under_a_sender(cluster: list[Relay], tmp_path: Path) -> Non
         # it ended with her Bye, not with her silence.
         assert seen["sessions"] == 1 and seen["left"] == "said bye", (name, seen)
         assert seen["frames"] > 0
+        # The freeze the node's death caused (a figure, not a test: it is the machine's load).
+        print(f"{name} saw alice's longest freeze: {seen['max_gap_ms']} ms")
