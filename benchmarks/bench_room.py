@@ -26,7 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facewire.relay import Relay, RelayConfig, free_port  # noqa: E402
 from protocol.sframe import RoomKey  # noqa: E402
-from sender.capture import demo_clip_path  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 

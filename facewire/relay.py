@@ -261,7 +261,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--routes", metavar="URL,...", default="",
         help="the other relays' cluster addresses, nats-route://HOST:PORT, comma-separated",
     )  # fmt: skip
-    p.add_argument("--store-dir", metavar="DIR", help="JetStream's folder (default: a temporary one)")
+    p.add_argument(
+        "--store-dir", metavar="DIR", help="JetStream's folder (default: a temporary one)"
+    )
     p.set_defaults(func=run)
 
 

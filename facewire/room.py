@@ -116,7 +116,8 @@ class _SendingSide:
                 args, where, source.video.is_camera, True, endpoint.publish, self.tell, max_bps
             )
             sent = with_sound(itertools.chain(restamped(buffered), frames), sound, source.video.fps)
-            self.report = run_sender(endpoint, encoder, sent, stop=self.stop)
+            # RoomSender has the part of SenderEndpoint's interface that run_sender uses.
+            self.report = run_sender(endpoint, encoder, sent, stop=self.stop)  # type: ignore[arg-type]
             self.link.delete_snapshot()  # a joiner from now on finds no stale face
         finally:
             source.close()
@@ -211,12 +212,8 @@ def run(args: argparse.Namespace) -> int:
             if view is not None:
                 view.close()
     stats = _stats(args, servers, link, receiver, sending, _hidden)
-    say(
-        "left room {}: {}".format(
-            args.room,
-            ", ".join(f"{n} {p['frames']} frames" for n, p in stats["peers"].items()) or "no one came",
-        )
-    )
+    seen = ", ".join(f"{n} {p['frames']} frames" for n, p in stats["peers"].items())
+    say(f"left room {args.room}: {seen or 'no one came'}")
     if args.stats:
         Path(args.stats).write_text(json.dumps(stats, indent=1))
     return 0

@@ -78,7 +78,8 @@ class RoomLink:
         except Exception as exc:  # nats-py's errors name no server: say which
             self.close()
             where = ", ".join(_hidden(s) for s in self.servers)
-            raise RelayUnreachable(f"cannot join through {where}: {exc or type(exc).__name__}")
+            why = str(exc) or type(exc).__name__
+            raise RelayUnreachable(f"cannot join through {where}: {why}") from None
 
     def _call(self, coroutine: Any, timeout: float = CALL_TIMEOUT_S) -> Any:
         future: Future[Any] = asyncio.run_coroutine_threadsafe(coroutine, self._loop)

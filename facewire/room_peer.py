@@ -180,6 +180,7 @@ class PeerFigures:
 
     def as_dict(self) -> dict[str, Any]:
         span_s = (self.last_us - (self.first_us or self.last_us)) / 1e6
+
         def kbps(n: int) -> float:
             return round(n * 8 / span_s / 1000, 2) if span_s > 0 else 0.0
 
@@ -342,7 +343,7 @@ class RoomReceiver:
         return peer
 
     def _packets(self, peer: Peer, bundle: bytes, figures: PeerFigures) -> list[object]:
-        out = []
+        out: list[object] = []
         try:
             elements = list(unpack(bundle))
         except BundleError:
@@ -376,7 +377,8 @@ class RoomReceiver:
         figures.keyframe_requests += 1
         seq = peer.next_seq or peer.snapshot.seq
         request = bytes(KeyframeRequest(min(seq, 2**32 - 1)))
-        sealed = self.sealer.seal(request, self.key.metadata(self.name, CONTROL + peer.name.encode()))
+        metadata = self.key.metadata(self.name, CONTROL + peer.name.encode())
+        sealed = self.sealer.seal(request, metadata)
         self.publish(subjects.control(self.key.room, peer.name, self.name), sealed)
 
     def _control(self, sender: str, data: bytes) -> None:
