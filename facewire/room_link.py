@@ -23,6 +23,8 @@ logger = logging.getLogger(__name__)
 
 CONNECT_TIMEOUT_S = 5.0
 CALL_TIMEOUT_S = 5.0
+#: A snapshot read holds the receiving loop up: no longer than this (it is tried again).
+SNAPSHOT_TIMEOUT_S = 1.0
 #: Reconnect quickly to another node of the cluster when the one in use dies.
 RECONNECT_WAIT_S = 0.25
 #: A cluster that has just started elects JetStream's leader before a bucket can be made.
@@ -95,8 +97,13 @@ class RoomLink:
         self._call(self._kv.put(self.name, data))
 
     def get_snapshot(self, name: str) -> bytes | None:
-        """``name``'s sealed snapshot, None when the bucket has none."""
-        return self._call(self._get(name))
+        """``name``'s sealed snapshot; None when the bucket has none, or cannot say now (a
+        cluster electing the bucket's leader after a node died, a reconnection)."""
+        try:
+            return self._call(self._get(name), SNAPSHOT_TIMEOUT_S)
+        except Exception as exc:
+            logger.info("%s's snapshot: %s", name, str(exc) or type(exc).__name__)
+            return None
 
     def delete_snapshot(self) -> None:
         self._call(self._kv.delete(self.name))

@@ -47,6 +47,9 @@ PEER_GONE_S = 2.5
 KEYFRAME_RETRY_S = 0.5
 #: A sender whose messages do not open is looked at again after this long (it may rejoin).
 LOCKED_RETRY_S = 5.0
+#: A snapshot that was not in the bucket (or the bucket did not answer) is asked for again
+#: after this long, not at each of that sender's messages.
+SNAPSHOT_RETRY_S = 0.5
 #: The longest gap in a recording filled by holding the last picture (frames).
 MAX_HOLD_FRAMES = 60
 SNAPSHOT, MEDIA, CONTROL = b"s", b"m", b"c"
@@ -229,6 +232,7 @@ class RoomReceiver:
         self.peers: dict[str, Peer] = {}
         self.figures: dict[str, PeerFigures] = {}
         self.locked: dict[str, float] = {}  # name -> when its messages last failed to open
+        self.asked: dict[str, float] = {}  # name -> when its snapshot was last read
         self.rejected: Counter[str] = Counter()  # messages that did not open, per sender
         self.told: set[str] = set()
 
@@ -306,8 +310,12 @@ class RoomReceiver:
         if not kid_is_of(kid, sender):
             self._rejected(sender, SFrameError(f"KID {kid:#x} is not {sender}'s"))
             return None
-        if time.monotonic() - self.locked.get(sender, -LOCKED_RETRY_S) < LOCKED_RETRY_S:
+        now = time.monotonic()
+        if now - self.locked.get(sender, -LOCKED_RETRY_S) < LOCKED_RETRY_S:
             return None
+        if now - self.asked.get(sender, -SNAPSHOT_RETRY_S) < SNAPSHOT_RETRY_S:
+            return None
+        self.asked[sender] = now
         if peer is not None:
             self._drop(peer, "restarted")
         self.opener.add_key(kid, self.key.base_key(sender))
@@ -330,7 +338,12 @@ class RoomReceiver:
         record = None
         if self.record_dir is not None:
             record = self.record_dir / f"{sender}.mp4"
-        peer = Peer(sender, kid, snapshot, record, self.gallery)
+        try:
+            peer = Peer(sender, kid, snapshot, record, self.gallery)
+        except ValueError as exc:  # a snapshot this decoder cannot take (another rig)
+            self.locked[sender] = time.monotonic()
+            self.notify(f"{sender} cannot be shown: {exc}")
+            return None
         if self.gallery is not None:
             self.gallery.joined(sender)
         self.peers[sender] = peer
