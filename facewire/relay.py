@@ -243,7 +243,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "relay",
         help="run the NATS relay a room's participants meet on",
-        description=__doc__.split("\n\n")[1] if __doc__ else None,
+        description="Runs nats-server, the relay a room's participants meet on: JetStream on "
+        "(the rooms' snapshots live in a key-value bucket), limits on what one client may hold, "
+        "and a token every client must give. It routes sealed bundles and cannot read them. "
+        "--cluster and --routes join it to other relays.",
     )
     p.add_argument(
         "--listen", metavar="HOST:PORT", default=DEFAULT_LISTEN,

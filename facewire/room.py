@@ -32,7 +32,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "room",
         help="join a room: a call of many people through a NATS relay",
-        description=__doc__.split("\n\n")[1] if __doc__ else None,
+        description="Joins a room: sends this end's face once (a camera, a file or the "
+        "bundled clip) and rebuilds everyone else's, one recording per person, through a NATS "
+        "relay (without --server, one started on loopback). Everything is sealed end to end "
+        "with the room's secret (facewire keys --room NAME): the relay cannot see faces.",
     )
     p.add_argument("--room", required=True, help="the room's name")
     p.add_argument("--name", required=True, help="this participant's name in the room")
