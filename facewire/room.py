@@ -127,12 +127,11 @@ class _SendingSide:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facewire.call import StopSignal, _quiet_opencv, say
+    from facewire.call import StopSignal, say
     from facewire.relay import Relay, RelayConfig, free_port
     from facewire.room_link import MAX_RECONNECT_ATTEMPTS, RECONNECT_WAIT_S, RoomLink, _hidden
     from facewire.room_peer import RoomReceiver
 
-    _quiet_opencv()
     subjects.check_name(args.room, "room")
     subjects.check_name(args.name, "participant")
     key = RoomKey.load(args.key)
