@@ -37,6 +37,10 @@ class Kind(IntEnum):
 
 #: Largest packet accepted, in bytes (the snapshot carries a texture and a background image).
 MAX_PACKET_BYTES: Final = 16 * 1024 * 1024
+#: Largest message a receiver's SUB socket takes (libzmq disconnects a peer that sends more):
+#: every update is far smaller (a frame body is at most 16 KiB, an Opus packet 1275 bytes, a
+#: REM patch a few hundred), and a queue of UPDATE_HWM of them then holds at most 16 MiB.
+MAX_UPDATE_BYTES: Final = 256 * 1024
 #: Longest msgpack str (names, meta values), in UTF-8 bytes.
 MAX_STR_LEN: Final = 1024
 #: Longest msgpack array (wire_layout entries are the longest arrays).

@@ -76,6 +76,8 @@ from protocol.constants import (
     LATE_FRAMES,
     LATE_REPORT_S,
     MAX_PACKET_BYTES,
+    MAX_SEQ_STEP,
+    MAX_UPDATE_BYTES,
     MAX_SNAPSHOT_PEERS,
     PEER_TIMEOUT_S,
     PROBE_INTERVAL_MS,
@@ -92,6 +94,7 @@ from protocol.constants import (
     UPDATE_HWM,
     ZAP_DOMAIN,
 )
+from protocol.hostile import Refusals
 from protocol.keys import KeyPair, load_keypair, load_public_key, load_public_keys
 from protocol.media_path import (
     DATAGRAM_COST,
@@ -174,6 +177,8 @@ class TransportStats:
     saved: int = 0
     # The media path: updates that came both as datagrams and on SUB, the second dropped.
     duplicates: int = 0
+    # Updates of another session, or by another connection than the session's, ignored (3.8).
+    ignored_sessions: int = 0
 
 
 def _socket(
@@ -945,6 +950,7 @@ class ReceiverEndpoint(_Endpoint):
             server_key = load_public_key(server_key_file)
         super().__init__(context, clock)
         self._sub = _socket(self._context, zmq.SUB, UPDATE_HWM, UPDATE_HWM)
+        self._sub.setsockopt(zmq.MAXMSGSIZE, MAX_UPDATE_BYTES)
         self._dealer = _socket(self._context, zmq.DEALER, BACK_CHANNEL_HWM, SNAPSHOT_HWM)
         self._sockets = [self._sub, self._dealer]
         if keys is not None:
@@ -988,6 +994,11 @@ class ReceiverEndpoint(_Endpoint):
         self.handshake_error: str | None = None
         self._sub_dropped = False  # SUB lost its connection since the join began
         self._rejoin_reason: str | None = None
+        #: Input refused to keep the live session (docs/protocol.md 3.8), logged once a second.
+        self.refusals = Refusals()
+        self._session_fd: int | None = None  # the SUB connection that carries the session
+        self._snapshot_fd: int | None = None  # the DEALER connection that brought the snapshot
+        self._newest: tuple[int, float] = (0, clock())  # newest frame number told, and when
         self._last_heard = clock()
         self._last_seq = 0
         self._bye = False
@@ -1105,7 +1116,8 @@ class ReceiverEndpoint(_Endpoint):
                 wait = min(wait, _ms(HELLO_INTERVAL_S))
             if not self._dealer.poll(wait, zmq.POLLIN):
                 continue
-            data = self._dealer.recv()
+            message = self._dealer.recv(copy=False)
+            data = message.bytes
             try:
                 packet = decode(data)
             except PacketError as exc:
@@ -1123,6 +1135,8 @@ class ReceiverEndpoint(_Endpoint):
                 self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
                 continue
             self._take_snapshot(packet, data)
+            self._snapshot_fd = _source(message)
+            self._newest = (packet.seq, self._clock())
             #: How long the snapshot took to come, ms (from the first request): the sender
             #: learns from it whether the link is fast (docs/protocol.md 8.7).
             self.snapshot_ms = (time.monotonic() - asked) * 1000
@@ -1156,10 +1170,12 @@ class ReceiverEndpoint(_Endpoint):
                     return packet
                 continue
             try:
-                packet = self._update(self._sub.recv_multipart(zmq.NOBLOCK))
+                packet = self._update(self._sub.recv_multipart(zmq.NOBLOCK, copy=False))
             except zmq.Again:
                 try:
-                    packet = self._update(self._dealer.recv_multipart(zmq.NOBLOCK), spare=True)
+                    packet = self._update(
+                        self._dealer.recv_multipart(zmq.NOBLOCK, copy=False), spare=True
+                    )
                 except zmq.Again:
                     remaining = _ms(deadline - time.monotonic())
                     if remaining <= 0:
@@ -1214,6 +1230,7 @@ class ReceiverEndpoint(_Endpoint):
         self.snapshot = None
         self._rejoin_reason = None
         self._bye = False
+        self._session_fd = None
         for _ in range(4 * UPDATE_HWM):
             try:
                 self._sub.recv_multipart(zmq.NOBLOCK)
@@ -1234,7 +1251,11 @@ class ReceiverEndpoint(_Endpoint):
             self.handshake_error = _describe_failure(kind, value)
             logger.info("handshake with the sender failed: %s", self.handshake_error)
         elif on_sub and kind == zmq.EVENT_DISCONNECTED:
-            self._sub_dropped = True
+            # Only the session's own connection counts (a bound SUB takes anyone's; before
+            # the session's is known, any): a stranger that connects and leaves changes nothing.
+            # What that connection brought before it ended (its Bye) is still the session's.
+            if self._session_fd is None or value == self._session_fd:
+                self._sub_dropped = True
         elif on_sub and kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
             self.handshake_error = None
             if self._sub_dropped and self.snapshot is not None and self._rejoin_reason is None:
@@ -1277,21 +1298,42 @@ class ReceiverEndpoint(_Endpoint):
         self._first_copy[packet.counter] = (now, spare)
         return True
 
-    def _update(self, frames: list[bytes], spare: bool = False) -> Packet | None:
+    def _update(self, frames: list[zmq.Frame], spare: bool = False) -> Packet | None:
         """An update from SUB, or (``spare``) from DEALER after the join: a frame packet's
         second copy, or a snapshot reply that came too late to matter."""
-        data = frames[0] if len(frames) == 1 else b"".join(frames)
+        fd = _source(frames[0])
+        if spare and fd != self._snapshot_fd:
+            # Not even decoded: a stranger on a bound DEALER may send 16 MiB messages.
+            self._ignore("ignored a message from another connection to DEALER")
+            return None
+        data = b"".join(f.bytes for f in frames)
         if len(frames) != 1:
             self._drop(data, f"{len(frames)}-part message")
             return None
-        return self._take(data, spare)
+        return self._take(data, spare, fd)
 
-    def _take(self, data: bytes, spare: bool = False) -> Packet | None:
-        """An update's bytes, from SUB, a datagram or the second path (``spare``)."""
+    def _take(self, data: bytes, spare: bool = False, fd: int | None = None) -> Packet | None:
+        """An update's bytes, from SUB or the second path (``spare``) on connection ``fd``,
+        or (``fd`` None) from a datagram, sealed with this join's key."""
         try:
             packet = decode(data)
         except PacketError as exc:
             self._drop(data, str(exc))
+            return None
+        if spare:
+            if not isinstance(packet, FRAME_KINDS):
+                if isinstance(packet, Snapshot) and packet.session_id == self.session_id:
+                    self._take_snapshot(packet, data)
+                    return packet  # the full one after a draft (docs/protocol.md 8.7)
+                if isinstance(packet, Snapshot):
+                    logger.debug("dropped a snapshot reply that came after the join")
+                else:
+                    self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
+                return None
+        elif not isinstance(packet, UPDATE_KINDS):
+            self._drop(data, f"unexpected {type(packet).__name__} on the update channel")
+            return None
+        if not self._of_session(packet, fd, spare):
             return None
         if (
             not spare
@@ -1303,31 +1345,14 @@ class ReceiverEndpoint(_Endpoint):
             # opening or down.
             self.stats.duplicates += 1
             return None
-        if spare and not isinstance(packet, FRAME_KINDS):
-            if isinstance(packet, Snapshot) and packet.session_id == self.session_id:
-                self._take_snapshot(packet, data)
-                return packet  # the full one after a draft (docs/protocol.md 8.7)
-            if isinstance(packet, Snapshot):
-                logger.debug("dropped a snapshot reply that came after the join")
-            else:
-                self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
-            return None
-        if not isinstance(packet, UPDATE_KINDS):
-            self._drop(data, f"unexpected {type(packet).__name__} on the update channel")
-            return None
         if isinstance(packet, Snapshot):
             self._take_snapshot(packet, data)
             return packet
         assert self.snapshot is not None
-        session = getattr(packet, "session_id", None)
-        if session is not None and session != self.snapshot.session_id:
-            self._rejoin_reason = (
-                f"the sender's session changed ({self.snapshot.session_id} -> {session})"
-            )
-            logger.info("%s", self._rejoin_reason)
-            return None
         self._last_heard = self._clock()
         self._bye = isinstance(packet, Bye)
+        if isinstance(packet, (KeyFrame, Heartbeat)) and packet.seq > self._newest[0]:
+            self._newest = (packet.seq, self._clock())
         if isinstance(packet, SEQ_KINDS) and packet.seq < self.snapshot.seq:
             self.stats.dropped_old += 1
             return None
@@ -1341,6 +1366,66 @@ class ReceiverEndpoint(_Endpoint):
         self.bytes_received[packet.CHANNEL] += len(data)
         self.sizes_received[packet.CHANNEL][len(data)] += 1
         return packet
+
+    def _of_session(self, packet: Packet, fd: int | None, spare: bool) -> bool:
+        """Whether an update belongs to the live session (docs/protocol.md 3.8).
+
+        On SUB the session's packets come by one connection, the first that brought one naming
+        the session; packets by another connection are ignored (counted), so a second sender
+        or a stranger can neither switch nor end the session. A packet naming another session
+        asks for a rejoin only when the session's own connection (or its datagrams) brings it:
+        the sender itself began a new session. A Bye whose seq lies beyond any frame the
+        sender can have sent by now is refused.
+        """
+        assert self.snapshot is not None
+        mine = self.snapshot.session_id
+        session = getattr(packet, "session_id", None)
+        kind = type(packet).__name__
+        on_sub = fd is not None and not spare
+        if on_sub and self._session_fd is not None and fd != self._session_fd:
+            self._ignore(f"ignored a {kind} from a second connection to SUB (another sender?)")
+            return False
+        if session is not None and session != mine:
+            if isinstance(packet, Heartbeat) and session == 0:
+                return False  # a probe's answer from before the sender had a session
+            if not spare and (fd is None or fd == self._session_fd):
+                self._rejoin_reason = f"the sender's session changed ({mine} -> {session})"
+                logger.info("%s", self._rejoin_reason)
+            else:
+                self._ignore(f"ignored a {kind} of session {session}: session {mine} is live")
+            return False
+        if on_sub and self._session_fd is None:
+            if session is None and isinstance(packet, Bye):
+                self._ignore("ignored a Bye before the session's connection was known")
+                return False
+            if session is not None:
+                self._session_fd = fd
+        if isinstance(packet, Bye) and not self._bye_in_reach(packet.seq):
+            self.stats.malformed += 1
+            self.refusals.refuse(
+                "malformed", f"refused a Bye at frame {packet.seq}: the sender is near frame "
+                f"{self._newest[0]}"
+            )  # fmt: skip
+            return False
+        return True
+
+    def _bye_in_reach(self, seq: int) -> bool:
+        """Whether a sender can have reached frame ``seq`` by now: the newest frame number it
+        told (a KeyFrame, a Heartbeat or the snapshot), one frame for each frame interval
+        since, and MAX_SEQ_STEP (a delta's longest step) to spare."""
+        assert self.snapshot is not None
+        newest, heard_at = self._newest
+        since = max(0.0, self._clock() - heard_at)
+        return seq <= newest + MAX_SEQ_STEP + math.ceil(since * self.snapshot.fps)
+
+    def _ignore(self, why: str) -> None:
+        self.stats.ignored_sessions += 1
+        self.refusals.refuse("ignored_sessions", why)
+
+
+def _source(frame: zmq.Frame) -> int:
+    """The connection (its file descriptor) a message came by."""
+    return int(frame.get(zmq.SRCFD))
 
 
 def _describe_failure(kind: int, value: int) -> str:
