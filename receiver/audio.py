@@ -22,7 +22,6 @@ import logging
 import os
 import tempfile
 import threading
-import time
 import wave
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -76,6 +75,18 @@ WINDOW = 100
 MAX_SAMPLES = 10_000
 #: Video frames kept to place the sound in the recording: two hours at 30 fps.
 MAX_ANCHORS = 216_000
+#: A packet's capture-to-arrival time this far from the recent packets' median is no network's
+#: jitter but a capture time that lies: it does not set the latency, µs ...
+MAX_SKEW_US = 2_000_000
+#: ... once there are this many recent packets to outvote it.
+TRUSTED_AFTER = 3
+#: No step is due further ahead than the latency (seconds at most): a run whose first step is
+#: due later than this, or was due this long ago, starts from its next packet instead, µs.
+MAX_WAIT_US = 5_000_000
+#: A stopping receiver waits this long for the sound's thread, s.
+CLOSE_WAIT_S = 1.0
+#: Silence for a pause is written this many samples at a time (bounded memory), one second.
+SILENCE_CHUNK = AUDIO_RATE
 
 
 class AudioDecodeError(ValueError):
@@ -228,6 +239,7 @@ class AudioReport:
     late: int = 0  # packets that came after their step was played
     dropped: int = 0  # too far ahead, duplicates
     malformed: int = 0  # packets the Opus decoder refused (concealed instead)
+    refused: int = 0  # a run's first packet due too far ahead or behind (MAX_WAIT_US)
     restarts: int = 0
     sink: str = ""
     # (audio latency, face latency) µs per played step: capture to sink, capture to screen.
@@ -251,6 +263,7 @@ class AudioReport:
             "late": self.late,
             "dropped": self.dropped,
             "malformed": self.malformed,
+            "refused": self.refused,
             "restarts": self.restarts,
             "sink": self.sink,
             "latency_ms_p50": float(np.median(lat[:, 0])) / 1000 if len(lat) else 0.0,
@@ -261,9 +274,16 @@ class AudioReport:
 
 
 class _Timeline:
-    """What was played, as 48 kHz mono int16 on the capture clock, kept in a WAV file."""
+    """What was played, as 48 kHz mono int16 on the capture clock, kept in a WAV file.
 
-    def __init__(self) -> None:
+    A pause between runs is written as silence, but never longer than the time that passed
+    on ``clock`` (µs) and a second: capture times that lie cannot make the file outgrow the
+    call.
+    """
+
+    def __init__(self, clock: Callable[[], int] = now_us) -> None:
+        self._clock = clock
+        self._written_at: int | None = None
         fd, name = tempfile.mkstemp(prefix="facewire-audio-", suffix=".wav")
         os.close(fd)
         self.path = Path(name)
@@ -285,15 +305,23 @@ class _Timeline:
         if self.start_us is None:
             self.start_us = capture_us
         at = round((capture_us - self.start_us) * AUDIO_RATE / 1e6)
+        now = self._clock()
+        if self._written_at is not None:
+            longest = self.samples + round((now - self._written_at + 1e6) * AUDIO_RATE / 1e6)
+            if at > longest:
+                self.start_us += round((at - longest) * 1e6 / AUDIO_RATE)
+                at = longest
+        self._written_at = now
         if stamp_us is not None and len(self.stamps) < MAX_ANCHORS:
             self.stamps.append((stamp_us, at))
         if at != self.samples or not self.stretches:
             overlap = max(self.samples - at, 0)  # kept as written, the new part after it
             begins = capture_us + round(overlap * 1e6 / AUDIO_RATE)
             self.stretches.append((begins, max(at, self.samples)))
-        if at > self.samples:  # a pause: silence up to it
-            self._wav.writeframes(np.zeros(at - self.samples, "<i2").tobytes())
-            self.samples = at
+        while at > self.samples:  # a pause: silence up to it
+            chunk = min(at - self.samples, SILENCE_CHUNK)
+            self._wav.writeframes(np.zeros(chunk, "<i2").tobytes())
+            self.samples += chunk
         skip = self.samples - at  # overlap after a re-sync: keep what was written
         if skip < len(pcm):
             self._wav.writeframes(pcm[skip:].astype("<i2").tobytes())
@@ -326,7 +354,7 @@ class AudioPlayout:
         self._face_latency = face_latency
         self._clock = clock
         self._decoder = OpusDecoder()
-        self._timeline = _Timeline()
+        self._timeline = _Timeline(clock)
         self._lock = threading.Condition()
         self._buffer: dict[int, AudioFrame] = {}
         # The later 20 ms steps of a 40 or 60 ms packet played: (pcm, capture µs) by step.
@@ -396,9 +424,18 @@ class AudioPlayout:
 
     # --- play side (its own thread) --------------------------------------------------------
 
+    def _usual_transit(self) -> int | None:
+        """The recent packets' median capture-to-arrival time, µs (None: too few yet)."""
+        if len(self._transit) < TRUSTED_AFTER:
+            return None
+        return int(np.median(self._transit))
+
     def _latency(self) -> int:
-        """How long after capture the next run of sound is played, µs."""
-        slowest = max(self._transit, default=0)
+        """How long after capture the next run of sound is played, µs: the slowest recent
+        packet sets it, of those near the median (a lying one the median outvotes)."""
+        usual = self._usual_transit()
+        near = [t for t in self._transit if usual is None or abs(t - usual) <= MAX_SKEW_US]
+        slowest = max(near, default=0)
         if len(self._transit) < OWN_TRANSITS and self._video_transit:
             # The pictures' typical transit (their median: a stalled frame says nothing of
             # the link), what a sound packet waits for on top of it, and a repeat's datagram.
@@ -429,8 +466,17 @@ class AudioPlayout:
                     self._stretch -= 1
                     self._base = (base_step, base_capture, base_due + FRAME_US)
             wait = due - self.sink.latency_us - self._clock()
+            if step == base_step and abs(wait) > MAX_WAIT_US:
+                # The run's first packet lied about its capture time (before enough packets
+                # came to outvote it): it is dropped, the run starts from the next one.
+                with self._lock:
+                    self.report.refused += self._buffer.pop(step, None) is not None
+                    self._next = None
+                continue
             if wait > 0:
-                time.sleep(wait / 1e6)
+                with self._lock:  # close() wakes it
+                    if self._lock.wait_for(lambda: self._stop, wait / 1e6):
+                        return
             if stretch:
                 self.sink.write(self._decoder.conceal())
                 self.report.stretched += 1
@@ -500,8 +546,10 @@ class AudioPlayout:
         """Stop playing (what is still buffered is dropped) and close the sink."""
         with self._lock:
             self._stop = True
-            self._lock.notify()
-        self._thread.join()
+            self._lock.notify_all()
+        self._thread.join(CLOSE_WAIT_S)
+        if self._thread.is_alive():  # a sound device that does not return: leave it
+            logger.warning("the sound's thread did not stop within %g s", CLOSE_WAIT_S)
         self.sink.close()
         self._timeline.close()
 
@@ -528,6 +576,10 @@ class AudioPlayout:
         told = (
             stamps[:, 0] - np.interp(stamps[:, 0], captures, late) - stamps[:, 1] * 1e6 / AUDIO_RATE
         )
+        # Nothing far beyond the recording's last frame and the sound played (the MP4 cuts
+        # it to the picture): a stamp that lies cannot make the sound outgrow the call.
+        length = max(round((seqs.max() - first_seq + 1) / fps * AUDIO_RATE), len(pcm))
+        length += AUDIO_RATE
         out = np.zeros(0, np.int16)
         ends = [k for _, k in stretches[1:]] + [len(pcm)]
         for (capture_us, start), end in zip(stretches, ends, strict=True):
@@ -540,6 +592,9 @@ class AudioPlayout:
             part = pcm[start:end]
             if at < 0:
                 part, at = part[-at:], 0
+            part = part[: max(0, length - at)]
+            if not len(part):
+                continue
             if at + len(part) > len(out):
                 out = np.concatenate([out, np.zeros(at + len(part) - len(out), np.int16)])
             out[at : at + len(part)] = part

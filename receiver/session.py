@@ -26,7 +26,7 @@ from protocol.constants import REFINED, SNAPSHOT_MS
 from protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.audio import CallSound
-from receiver.decoder import FaceDecoder
+from receiver.decoder import FaceDecoder, SnapshotError
 from receiver.interpolation import Painter
 from receiver.lateness import LateFrames
 from receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
@@ -65,6 +65,10 @@ class ReceiverReport:
     busy_s: float = 0.0  # own processing time: deform + render + record
     latency_ms: list[float] = field(default_factory=list)
     malformed: int = 0
+    # Snapshots this receiver could not use (another rig, images that do not decode...), and
+    # updates of another session or by another connection, ignored (docs/protocol.md 3.8).
+    refused_snapshots: int = 0
+    ignored_sessions: int = 0
     bytes_received: dict[str, int] = field(default_factory=dict)
     bytes_sent: dict[str, int] = field(default_factory=dict)
     ended_by: str = ""
@@ -113,6 +117,8 @@ class ReceiverReport:
                 "max": float(lat.max()),
             },
             "malformed": self.malformed,
+            "refused_snapshots": self.refused_snapshots,
+            "ignored_sessions": self.ignored_sessions,
             "bytes_received": dict(self.bytes_received),
             "bytes_sent": dict(self.bytes_sent),
             "ended_by": self.ended_by,
@@ -222,10 +228,11 @@ def run_receiver(
         notify(f"waiting for a sender {how} tcp://{host}:{ports[0]} (and :{ports[1]})")
         started = time.monotonic()
         _import_renderer_meanwhile()
-        snapshot = _wait_for_session(endpoint, join_timeout_s, stop)
-        if snapshot is None:
+        joined = _join(endpoint, join_timeout_s, stop, report)
+        if joined is None:
             report.ended_by = "stopped"
             return report
+        snapshot, decoder = joined
         recorder = (
             BackgroundRecorder(output, snapshot.width, snapshot.height, snapshot.fps)
             if output is not None
@@ -233,7 +240,8 @@ def run_receiver(
         )
         audio = CallSound(report.shown, snapshot.seq, snapshot.fps, notify) if sound else None
         try:
-            while snapshot is not None:
+            while joined is not None:
+                snapshot, decoder = joined
                 report.sessions += 1
                 report.keyframe_interval = snapshot.keyframe_interval
                 notify(
@@ -243,10 +251,10 @@ def run_receiver(
                 out = _Output(recorder, sink, snapshot.session_id, report)
                 before = report.frames_out
                 report.ended_by = _receive_session(
-                    endpoint, snapshot, out, report, started, stop, settings, audio
+                    endpoint, decoder, snapshot, out, report, started, stop, settings, audio
                 )
                 frames = report.frames_out - before
-                snapshot = None
+                joined = None
                 if report.ended_by == "stopped":
                     break
                 waiting = rejoin_timeout_s > 0
@@ -257,11 +265,11 @@ def run_receiver(
                 if waiting:
                     started = time.monotonic()
                     try:
-                        snapshot = _wait_for_session(endpoint, rejoin_timeout_s, stop)
+                        joined = _join(endpoint, rejoin_timeout_s, stop, report)
                     except TransportError as exc:
                         logger.info("no new session: %s", exc)
                         notify(f"no new session within {rejoin_timeout_s:g} s")
-                    if snapshot is None and stop():
+                    if joined is None and stop():
                         report.ended_by = "stopped"
         finally:
             if recorder is not None:
@@ -271,6 +279,7 @@ def run_receiver(
         if report.ended_by == "stopped":
             endpoint.send_stats({"left": 1.0})  # the sender may wait for another receiver
         report.malformed += endpoint.stats.malformed
+        report.ignored_sessions = endpoint.stats.ignored_sessions
         stats = endpoint.stats
         report.second_path = {
             "late_frames": stats.late_frames,
@@ -292,6 +301,36 @@ def _import_renderer_meanwhile() -> None:
         target=importlib.import_module, args=("receiver.render",), name="import-renderer",
         daemon=True,
     ).start()  # fmt: skip
+
+
+def _join(
+    endpoint: ReceiverEndpoint,
+    timeout_s: float,
+    stop: Callable[[], bool],
+    report: ReceiverReport,
+) -> tuple[Snapshot, FaceDecoder] | None:
+    """The next session this receiver can draw: its snapshot and decoder. A snapshot it cannot
+    use (another rig, images that do not decode, another channel table) is refused, counted,
+    and another asked for (a stranger may have answered on a bound DEALER); None once
+    ``stop()``; TransportError after ``timeout_s``, naming the last refusal."""
+    deadline = time.monotonic() + timeout_s
+    refused = ""
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            snapshot = _wait_for_session(endpoint, max(left, 0.001), stop)
+        except TransportError as exc:
+            raise TransportError(f"{exc}{refused}") from None
+        if snapshot is None:
+            return None
+        try:
+            return snapshot, FaceDecoder(snapshot)
+        except SnapshotError as exc:
+            report.refused_snapshots += 1
+            refused = f" (a snapshot came, but was refused: {exc})"
+            endpoint.refusals.refuse(
+                "refused_snapshots", f"refused session {snapshot.session_id}'s snapshot: {exc}"
+            )
 
 
 def _wait_for_session(
@@ -349,6 +388,7 @@ class _Output:
 
 def _receive_session(
     endpoint: ReceiverEndpoint,
+    decoder: FaceDecoder,
     snapshot: Snapshot,
     out: _Output,
     report: ReceiverReport,
@@ -358,7 +398,6 @@ def _receive_session(
     audio: CallSound | None = None,
 ) -> str:
     """Rebuild, show and record one session's frames; returns why it ended."""
-    decoder = FaceDecoder(snapshot)
     try:
         playout = make_playout(settings, snapshot.fps)
         report.display_fps = settings.display_fps or snapshot.fps
