@@ -20,6 +20,7 @@ from receiver.audio import (
     AudioPlayout,
     NullSink,
     OpusDecoder,
+    _Timeline,
     _toc_of_20_ms,
     mux_audio,
     read_audio,
@@ -438,3 +439,75 @@ def test_a_looped_file_plays_its_sound_again() -> None:
     again = np.concatenate([pcm for pcm in read if pcm is not None])
     assert len(again) >= 2 * len(first)
     assert np.array_equal(again[len(first) : 2 * len(first)], first)
+
+
+# --- capture times that lie (a hostile or broken sender) --------------------------------------
+
+HOUR_US = 3600 * 1_000_000
+
+
+def play_after(
+    first: AudioFrame, packets: list[AudioFrame], face_us: int | None
+) -> tuple[AudioPlayout, bool]:
+    """Push ``first`` (its capture time as given, relative to the others'), then ``packets``
+    as if captured just now; wait until they are played; close. Whether close() ended the
+    sound's thread (it once slept for as long as the first packet said)."""
+    playout = AudioPlayout(NullSink(), lambda: face_us)
+    shift = time.monotonic_ns() // 1000 - packets[0].capture_us
+    now = packets[0].capture_us + shift
+    playout.push(AudioFrame(first.seq, first.capture_us + shift, first.data), now)
+    for p in packets:
+        playout.push(AudioFrame(p.seq, p.capture_us + shift, p.data), p.capture_us + shift)
+    time.sleep(len(packets) * 0.02 + MIN_LATENCY_US / 1e6 + 0.3)
+    playout.close()
+    stopped = not playout._thread.is_alive()
+    playout.discard()
+    return playout, stopped
+
+
+@pytest.mark.parametrize(
+    ("ahead_us", "face_us"),
+    [(HOUR_US, 60_000), (HOUR_US, None), (2**62, None), (-HOUR_US, 60_000)],
+    ids=["hour-ahead", "hour-ahead-before-any-picture", "near-2^62", "hour-behind"],
+)
+def test_a_packet_whose_capture_time_lies_does_not_hold_the_sound(
+    speech: list[AudioFrame], ahead_us: int, face_us: int | None
+) -> None:
+    """One AudioFrame an hour ahead made the sound's thread sleep an hour (close() waited
+    for it: the receiver ignored SIGTERM); one near 2^62 killed it (OverflowError). The run
+    it begins is due too far ahead or behind: it is dropped, and the run starts from the next
+    packet; the packets after it outvote its time, so the latency does not take it."""
+    packets = talk(speech)
+    liar = AudioFrame(packets[0].seq - 1, packets[0].capture_us + ahead_us, packets[0].data)
+    playout, stopped = play_after(liar, packets, face_us)
+    assert stopped
+    assert playout.report.played == len(packets) and playout.report.refused >= 1
+
+
+def test_close_ends_a_long_wait_at_once(speech: list[AudioFrame]) -> None:
+    """A face 4 s behind (within the limits) makes the sound wait 4 s: close() ends it."""
+    playout = AudioPlayout(NullSink(), lambda: 4_000_000)
+    packets = talk(speech)[:5]
+    shift = time.monotonic_ns() // 1000 - packets[0].capture_us
+    for p in packets:
+        playout.push(AudioFrame(p.seq, p.capture_us + shift, p.data), p.capture_us + shift)
+    time.sleep(0.1)
+    assert playout._next == packets[0].seq  # waiting for its first step
+    playout.close()
+    assert not playout._thread.is_alive()
+    playout.discard()
+
+
+def test_the_sound_file_grows_no_faster_than_the_call() -> None:
+    """A run stamped an hour after the last one is written a second after it, not an hour
+    of silence (345 MB) later."""
+    clock = [0]
+    timeline = _Timeline(lambda: clock[0])
+    pcm = np.ones(AUDIO_FRAME_SAMPLES, np.int16)
+    timeline.put(0, pcm)
+    clock[0] += 20_000
+    timeline.put(HOUR_US, pcm)
+    timeline.close()
+    assert timeline.samples <= 2 * AUDIO_RATE
+    assert len(timeline.read()) == timeline.samples
+    timeline.path.unlink()
