@@ -958,7 +958,13 @@ class ReceiverEndpoint(_Endpoint):
                 sock.setsockopt(zmq.CURVE_SECRETKEY, keys.secret)
                 sock.setsockopt(zmq.CURVE_PUBLICKEY, keys.public)
                 sock.setsockopt(zmq.CURVE_SERVERKEY, server_key)
-        events = zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_DISCONNECTED | _HANDSHAKE_FAILED
+        events = (
+            zmq.EVENT_HANDSHAKE_SUCCEEDED
+            | zmq.EVENT_DISCONNECTED
+            | zmq.EVENT_ACCEPTED
+            | zmq.EVENT_CONNECTED
+            | _HANDSHAKE_FAILED
+        )
         self._monitors = [sock.get_monitor_socket(events) for sock in self._sockets]
         for monitor in self._monitors:
             monitor.setsockopt(zmq.LINGER, 0)
@@ -997,6 +1003,7 @@ class ReceiverEndpoint(_Endpoint):
         #: Input refused to keep the live session (docs/protocol.md 3.8), logged once a second.
         self.refusals = Refusals()
         self._session_fd: int | None = None  # the SUB connection that carries the session
+        self._gone: set[int] = set()  # SUB connections ended before the session's was known
         self._snapshot_fd: int | None = None  # the DEALER connection that brought the snapshot
         self._newest: tuple[int, float] = (0, clock())  # newest frame number told, and when
         self._last_heard = clock()
@@ -1080,6 +1087,7 @@ class ReceiverEndpoint(_Endpoint):
         self._first_copy.clear()
         self._read_events()
         self._sub_dropped = False
+        self._gone.clear()
         deadline = time.monotonic() + timeout_ms / 1000
         # 1. Prove the subscription is live: probe until SUB has something to read.
         while not self._sub.poll(0, zmq.POLLIN):
@@ -1251,11 +1259,15 @@ class ReceiverEndpoint(_Endpoint):
             self.handshake_error = _describe_failure(kind, value)
             logger.info("handshake with the sender failed: %s", self.handshake_error)
         elif on_sub and kind == zmq.EVENT_DISCONNECTED:
-            # Only the session's own connection counts (a bound SUB takes anyone's; before
-            # the session's is known, any): a stranger that connects and leaves changes nothing.
-            # What that connection brought before it ended (its Bye) is still the session's.
-            if self._session_fd is None or value == self._session_fd:
+            # Only the session's own connection counts (a bound SUB takes anyone's): a
+            # stranger that connects and leaves changes nothing. What that connection brought
+            # before it ended (its Bye) is still the session's.
+            if value == self._session_fd:
                 self._sub_dropped = True
+            elif self._session_fd is None:
+                self._gone.add(value)
+        elif on_sub and kind in (zmq.EVENT_ACCEPTED, zmq.EVENT_CONNECTED):
+            self._gone.discard(value)  # a new connection with an old one's number
         elif on_sub and kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
             self.handshake_error = None
             if self._sub_dropped and self.snapshot is not None and self._rejoin_reason is None:
@@ -1400,6 +1412,11 @@ class ReceiverEndpoint(_Endpoint):
                 return False
             if session is not None:
                 self._session_fd = fd
+                self._read_events()  # (the connection's number may have been taken again)
+                if fd in self._gone:  # it brought the session, then ended: the sender left
+                    self._rejoin_reason = "the sender's connection dropped"
+                    logger.info("%s", self._rejoin_reason)
+                    return False
         if isinstance(packet, Bye) and not self._bye_in_reach(packet.seq):
             self.stats.malformed += 1
             self.refusals.refuse(
