@@ -35,9 +35,11 @@ sends it every KeyFrame and DeltaFrame over the ROUTER/DEALER connection, whose 
 independent of the PUB connection's. :meth:`ReceiverEndpoint.recv` passes on whichever copy of
 a frame packet comes first (by its counter) and drops the other.
 
-Rejoining: when the receiver's SUB connection drops and comes back (the sender restarted, or the
-network failed), or an update names another session (``session_id``), :meth:`recv` raises
-:class:`RejoinNeeded` until :meth:`ReceiverEndpoint.fetch_snapshot` is called again.
+Rejoining: when the session's SUB connection drops and comes back (the sender restarted, or the
+network failed), or it names another session (``session_id``), :meth:`recv` raises
+:class:`RejoinNeeded` until :meth:`ReceiverEndpoint.fetch_snapshot` is called again. Packets by
+any other connection (a bound receiver takes anyone's), or naming another session by any other
+way, are ignored and counted (docs/protocol.md 3.8): a stranger cannot switch or end a session.
 
 This is the only module that imports zmq.
 """
@@ -1158,7 +1160,7 @@ class ReceiverEndpoint(_Endpoint):
         Malformed
         messages are counted in ``stats.malformed`` and dropped; bad input never raises.
         Raises :class:`RejoinNeeded` (until :meth:`fetch_snapshot` is called again) once the
-        SUB connection has dropped and come back, or an update names another session.
+        session's SUB connection has dropped and come back, or it names another session.
         """
         self._check_open()
         if self.snapshot is None:
