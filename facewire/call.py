@@ -442,6 +442,7 @@ def send(
 def run_send(args: argparse.Namespace) -> int:
     address = address_from(args)
     keys = sender_keys(args)
+    _check_stats(args.stats)
     with StopSignal() as stop:
         stats = send(args, address, keys, stop)
     _write_stats(args.stats, stats)
@@ -449,6 +450,15 @@ def run_send(args: argparse.Namespace) -> int:
 
 
 # --- the receiving end -----------------------------------------------------------------------
+
+
+def _check_stats(path: str | None) -> None:
+    """The figures are written at the end of a call: a folder that is not there would lose
+    them after the whole call, so it is checked first."""
+    if path is not None and not Path(path).parent.is_dir():
+        raise ValueError(
+            f"cannot write the figures to {path}: folder {Path(path).parent} does not exist"
+        )
 
 
 def _check_record(path: str | None) -> None:
@@ -527,6 +537,7 @@ def run_receive(args: argparse.Namespace) -> int:
     address = address_from(args)
     keys = receiver_keys(args)
     _check_record(args.record)
+    _check_stats(args.stats)
     with StopSignal() as stop, Watchers(args, say) as watch:
         stats = receive(
             args, address, keys, watch.stop(stop), watch.tell, sink=watch.sink, once=args.once
@@ -595,6 +606,7 @@ def run_call(args: argparse.Namespace) -> int:
     check_ports_free(address, CALL_PORTS)
     keys_out, keys_in = sender_keys(args), receiver_keys(args)
     _check_record(args.record)
+    _check_stats(args.stats)
     check_watch_arguments(args)
     # The binding end sends on PORT, PORT+1; the connecting end on PORT+2, PORT+3.
     send_offset, receive_offset = (0, 2) if address.bind else (2, 0)

@@ -47,6 +47,7 @@ This is the only module that imports zmq.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import itertools
 import logging
 import math
@@ -955,6 +956,7 @@ class ReceiverEndpoint(_Endpoint):
         self._sub.setsockopt(zmq.MAXMSGSIZE, MAX_UPDATE_BYTES)
         self._dealer = _socket(self._context, zmq.DEALER, BACK_CHANNEL_HWM, SNAPSHOT_HWM)
         self._sockets = [self._sub, self._dealer]
+        self._curve = keys is not None
         if keys is not None:
             for sock in self._sockets:
                 sock.setsockopt(zmq.CURVE_SECRETKEY, keys.secret)
@@ -1258,7 +1260,7 @@ class ReceiverEndpoint(_Endpoint):
 
     def _on_event(self, on_sub: bool, kind: int, value: int) -> None:
         if kind & _HANDSHAKE_FAILED:
-            self.handshake_error = _describe_failure(kind, value)
+            self.handshake_error = _describe_failure(kind, value, self._curve)
             logger.info("handshake with the sender failed: %s", self.handshake_error)
         elif on_sub and kind == zmq.EVENT_DISCONNECTED:
             # Only the session's own connection counts (a bound SUB takes anyone's): a
@@ -1447,7 +1449,7 @@ def _source(frame: zmq.Frame) -> int:
     return int(frame.get(zmq.SRCFD))
 
 
-def _describe_failure(kind: int, value: int) -> str:
+def _describe_failure(kind: int, value: int, curve: bool) -> str:
     if kind == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
         return (
             f"the sender refused this receiver's key (ZAP status {value}; is its public key "
@@ -1457,5 +1459,12 @@ def _describe_failure(kind: int, value: int) -> str:
         return (
             "CURVE/ZMTP handshake failed (protocol error "
             f"{value:#x}: wrong server key, or one end is plain and the other encrypted?)"
+        )
+    if curve and value in (errno.EPIPE, errno.ECONNRESET):
+        # A CURVE server that cannot open the client's HELLO (made for another server key)
+        # closes the connection without a word.
+        return (
+            "handshake failed: the sender's key does not match the one this end holds for it "
+            "(--peer), or it is another program"
         )
     return f"handshake failed (errno {value}: {os.strerror(value)})"

@@ -228,7 +228,7 @@ def run_receiver(
         notify(f"waiting for a sender {how} tcp://{host}:{ports[0]} (and :{ports[1]})")
         started = time.monotonic()
         _import_renderer_meanwhile()
-        joined = _join(endpoint, join_timeout_s, stop, report)
+        joined = _join(endpoint, join_timeout_s, stop, report, notify)
         if joined is None:
             report.ended_by = "stopped"
             return report
@@ -265,7 +265,7 @@ def run_receiver(
                 if waiting:
                     started = time.monotonic()
                     try:
-                        joined = _join(endpoint, rejoin_timeout_s, stop, report)
+                        joined = _join(endpoint, rejoin_timeout_s, stop, report, notify)
                     except TransportError as exc:
                         logger.info("no new session: %s", exc)
                         notify(f"no new session within {rejoin_timeout_s:g} s")
@@ -308,17 +308,19 @@ def _join(
     timeout_s: float,
     stop: Callable[[], bool],
     report: ReceiverReport,
+    notify: Callable[[str], None] = _quiet,
 ) -> tuple[Snapshot, FaceDecoder] | None:
     """The next session this receiver can draw: its snapshot and decoder. A snapshot it cannot
     use (another rig, images that do not decode, another channel table) is refused, counted,
     and another asked for (a stranger may have answered on a bound DEALER); None once
-    ``stop()``; TransportError after ``timeout_s``, naming the last refusal."""
+    ``stop()``; TransportError after ``timeout_s``, naming the last refusal. A handshake that
+    fails (a key that does not match) is told to ``notify`` once, as it happens."""
     deadline = time.monotonic() + timeout_s
     refused = ""
     while True:
         left = deadline - time.monotonic()
         try:
-            snapshot = _wait_for_session(endpoint, max(left, 0.001), stop)
+            snapshot = _wait_for_session(endpoint, max(left, 0.001), stop, notify)
         except TransportError as exc:
             raise TransportError(f"{exc}{refused}") from None
         if snapshot is None:
@@ -334,7 +336,10 @@ def _join(
 
 
 def _wait_for_session(
-    endpoint: ReceiverEndpoint, timeout_s: float, stop: Callable[[], bool]
+    endpoint: ReceiverEndpoint,
+    timeout_s: float,
+    stop: Callable[[], bool],
+    notify: Callable[[str], None] = _quiet,
 ) -> Snapshot | None:
     """The next session's snapshot; None once ``stop()``; TransportError after ``timeout_s``.
 
@@ -344,11 +349,16 @@ def _wait_for_session(
     if stop is _never and math.isfinite(timeout_s):
         return endpoint.fetch_snapshot(timeout_ms=_ms(timeout_s))
     deadline = time.monotonic() + timeout_s
+    told: str | None = None
     while not stop():
         attempt = _ms(min(STOP_CHECK_S, max(0.001, deadline - time.monotonic())))
         try:
             return endpoint.fetch_snapshot(timeout_ms=attempt)
         except TransportError as exc:
+            failed = endpoint.handshake_error
+            if failed is not None and failed != told:
+                notify(f"cannot join: {failed}")
+            told = failed
             if time.monotonic() >= deadline:
                 reason = str(exc).replace(f" within {attempt} ms", "")
                 raise TransportError(f"no sender within {timeout_s:g} s: {reason}") from None

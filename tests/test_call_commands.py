@@ -13,7 +13,15 @@ import socket
 from pathlib import Path
 
 import pytest
-from cli_call import Facewire, all_end_well, count_frames, free_ports, run_facewire, wait_for_file
+from cli_call import (
+    Facewire,
+    all_end_well,
+    count_frames,
+    free_ports,
+    hang_up,
+    run_facewire,
+    wait_for_file,
+)
 
 from facewire.call import summary
 from facewire.quality import read_frames, score_frames, track_all
@@ -229,6 +237,9 @@ def _busy_port() -> tuple[socket.socket, int]:
         "no-keys-and-not-plain",
         "camera-that-does-not-exist",
         "record-into-missing-folder",
+        "stats-into-missing-folder",
+        "stats-into-missing-folder-of-a-sender",
+        "stats-into-missing-folder-of-a-call",
         "view-address-without-port",
         "view-host-unknown",
         "view-port-in-use",
@@ -315,6 +326,18 @@ def test_bad_use_ends_with_one_line_and_status_1(
             ["receive", "--bind", here, *key, "--record", str(tmp_path / "no" / "x.mp4")],
             f"folder {tmp_path / 'no'} does not exist",
         ),
+        "stats-into-missing-folder": (
+            ["receive", "--bind", here, "--plain", "--stats", str(tmp_path / "no" / "s.json")],
+            f"cannot write the figures to {tmp_path / 'no' / 's.json'}: folder",
+        ),
+        "stats-into-missing-folder-of-a-sender": (
+            ["send", "--bind", here, "--plain", "--stats", str(tmp_path / "no" / "s.json")],
+            f"folder {tmp_path / 'no'} does not exist",
+        ),
+        "stats-into-missing-folder-of-a-call": (
+            ["call", "--bind", here, "--plain", "--stats", str(tmp_path / "no" / "s.json")],
+            f"folder {tmp_path / 'no'} does not exist",
+        ),
         "view-address-without-port": (
             ["receive", "--bind", here, "--plain", "--view", "8080"],
             "invalid live view address '8080': expected HOST:PORT",
@@ -364,3 +387,25 @@ def test_the_summary_names_the_second_path_only_where_it_ran() -> None:
     line = summary(report, report.as_dict(), None)
     assert line.endswith("(stopped), latency p50 30.0 ms p99 30.0 ms; 9 frames came late, "
                          "the second path brought 3 sooner")  # fmt: skip
+
+
+def test_a_wrong_peer_key_is_said_in_one_line(tmp_path: Path, keys: Path) -> None:
+    """A receiver given the wrong key for the sender said only "handshake failed (errno 32:
+    Broken pipe)" in its log, and waited in silence."""
+    here = f"tcp://127.0.0.1:{free_ports(2)}"
+    sender = Facewire(
+        "send", "--bind", here, "--loop", "--no-sound",
+        "--key", str(keys / "alice.key_secret"), "--peer", str(keys / "bob.key"),
+    )  # fmt: skip
+    receiver = Facewire(
+        "receive", "--connect", here,
+        "--key", str(keys / "bob.key_secret"), "--peer", str(keys / "bob.key"),
+    )  # fmt: skip
+    try:
+        line = receiver.expect("cannot join")
+        assert "the sender's key does not match the one this end holds for it (--peer)" in line
+        hang_up(receiver, sender)
+    finally:
+        receiver.kill()
+        sender.kill()
+    assert sum("cannot join" in line for line in receiver.lines) == 1
