@@ -326,13 +326,15 @@ def _paused_while_alone(
     presence: _Presence,
     stop: Callable[[], bool],
     tell: Callable[[str], None],
+    wait: bool = True,
 ) -> Iterator[Any]:
-    """``frames``, waiting for a new receiver whenever the last one has left."""
+    """``frames``, waiting for a new receiver whenever the last one has left (``wait``), or
+    ending there."""
     from sender.session import wait_until_ready
 
     for frame in frames:
         if presence.active == 0:
-            if not wait_until_ready(endpoint, math.inf, lambda: not stop()):
+            if not wait or not wait_until_ready(endpoint, math.inf, lambda: not stop()):
                 return
             presence.active += 1
             tell("a receiver joined")
@@ -347,10 +349,12 @@ def send(
     stop: Callable[[], bool],
     tell: Callable[[str], None] = say,
     offset: int = 0,
+    wait_when_alone: bool = True,
 ) -> dict[str, Any]:
     """Run the sending end until its input ends or ``stop()``; returns its figures.
 
     ``offset``: ports used from the address's PORT on (a two-way call's second direction).
+    When its receiver has left, it waits for another (``wait_when_alone``), or ends.
     """
     from protocol.transport import SenderEndpoint
     from sender.audio import with_sound
@@ -399,7 +403,9 @@ def send(
             tell("a receiver joined; sending")
             source.video.resync(len(buffered))
             presence = _Presence(active=1)
-            rest = _paused_while_alone(frames, source, endpoint, presence, stop, tell)
+            rest = _paused_while_alone(
+                frames, source, endpoint, presence, stop, tell, wait_when_alone
+            )
             where = source.path if source.path is not None else args.camera
             sound = sound_as_asked(
                 args, where, source.video.is_camera, True, endpoint.publish, tell,
@@ -627,15 +633,20 @@ def run_call(args: argparse.Namespace) -> int:
                 raise RuntimeError("the receiving side did not start in time") from None
             if status == "error":
                 raise RuntimeError(detail)
+        # An endless input (a camera, a looped file) is sent until either end hangs up (here,
+        # or the other end's Bye); a finite one (--frames, a file) to its end, unless this end
+        # stops or the other end's receiver leaves: the other end's input ending first does
+        # not cut this end's short.
+        endless = args.frames is None and (args.camera is not None or args.loop)
         with StopSignal() as stop:
-            # The call ends when either end stops: here, or the other end's Bye.
             sent = send(
                 args,
                 address,
                 keys_out,
-                lambda: stop() or done.is_set(),
+                lambda: stop() or (done.is_set() and endless),
                 lambda line: say(f"send: {line}"),
                 send_offset,
+                wait_when_alone=False,
             )
             while not (stop() or done.wait(0.2)):
                 pass  # our input ended; keep showing the other end until it hangs up

@@ -214,6 +214,38 @@ def test_two_way_call_ends_when_one_end_hangs_up(tmp_path: Path, keys: Path) -> 
     assert ends[0].lines[-1].startswith("receive: received 1 session(s)")
 
 
+def test_two_way_call_with_frames_on_both_ends_sends_them_all(tmp_path: Path, keys: Path) -> None:
+    """Each end sends its --frames: the end that finishes first keeps showing the other until
+    it is done (the first to finish used to hang up the other's half too)."""
+    port = free_ports(4)
+    ends = [
+        Facewire(
+            "call",
+            *where,
+            "--frames",
+            str(frames),
+            "--no-sound",
+            "--stats",
+            str(tmp_path / f"{name}.json"),
+            "--key",
+            str(keys / f"{name}.key_secret"),
+            "--peer",
+            str(keys / f"{peer}.key"),
+            name=name,
+        )  # fmt: skip
+        for name, peer, where, frames in (
+            ("alice", "bob", ("--bind", f"tcp://127.0.0.1:{port}"), 45),
+            ("bob", "alice", ("--connect", f"tcp://127.0.0.1:{port}"), 120),
+        )
+    ]
+    all_end_well(*ends)
+    alice, bob = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("alice", "bob"))
+    assert (alice["sent"]["frames_in"], bob["sent"]["frames_in"]) == (45, 120)
+    assert not alice["sent"]["stopped"] and not bob["sent"]["stopped"]
+    assert alice["received"]["ended_by"] == bob["received"]["ended_by"] == "bye"
+    assert alice["received"]["frames_out"] == 120 and bob["received"]["frames_out"] == 45
+
+
 def _busy_port() -> tuple[socket.socket, int]:
     s = socket.socket()
     s.bind(("127.0.0.1", 0))
