@@ -470,9 +470,7 @@ class KeyFrame(_Packet):
     @classmethod
     def _from_body(cls, body: bytes) -> Self:
         if len(body) < _KEY_HEAD.size:
-            raise PacketError(
-                f"truncated KeyFrame: {len(body) + 1} bytes, needs at least {_KEY_HEAD.size + 1}"
-            )
+            raise _truncated("KeyFrame", len(body) + 1, _KEY_HEAD.size + 1)
         counter, session_id, seq, capture_us = _KEY_HEAD.unpack_from(body)
         return cls(counter, session_id, seq, capture_us, body[_KEY_HEAD.size :])
 
@@ -501,8 +499,15 @@ class DeltaFrame(_Packet):
     @classmethod
     def _from_body(cls, body: bytes) -> Self:
         if not body:
-            raise PacketError("truncated DeltaFrame: 1 byte, needs at least 2")
+            raise _truncated("DeltaFrame", 1, 2)
         return cls(body[0], body[1:])
+
+
+def _truncated(kind: str, length: int, least: int) -> PacketError:
+    """A binary packet cut short of its fixed fields (its body declares no length)."""
+    return PacketError(
+        f"truncated {kind}: {length} byte{'' if length == 1 else 's'}, needs at least {least}"
+    )
 
 
 def _frame_body(name: str, value: object) -> bytes:
@@ -550,10 +555,7 @@ class AudioFrame(_Packet):
     @classmethod
     def _from_body(cls, body: bytes) -> Self:
         if len(body) < _AUDIO_HEAD.size + 1:
-            raise PacketError(
-                f"truncated AudioFrame: {len(body) + 1} bytes, needs at least "
-                f"{_AUDIO_HEAD.size + 2}"
-            )
+            raise _truncated("AudioFrame", len(body) + 1, _AUDIO_HEAD.size + 2)
         seq, capture_us = _AUDIO_HEAD.unpack_from(body)
         return cls(seq, capture_us, body[_AUDIO_HEAD.size :])
 

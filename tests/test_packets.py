@@ -264,6 +264,41 @@ def test_error_messages(data: bytes, message: str) -> None:
     assert str(info.value).startswith(message), str(info.value)
 
 
+#: The shortest well-formed packet of each binary kind: its fixed fields and the least body
+#: (a KeyFrame's may be empty, a DeltaFrame's too, an AudioFrame holds at least one byte).
+SHORTEST = {"key_frame": 18, "delta_frame": 2, "audio_frame": 14}
+
+
+@pytest.mark.parametrize("name", sorted(SHORTEST))
+def test_a_binary_packet_a_byte_short_of_its_fixed_fields_is_refused(name: str) -> None:
+    """Their bodies declare no length, so a cut inside the body is another valid packet; a cut
+    into the fixed fields is not, even by one byte (a decoder that pads a missing byte was
+    once taken: only a cut of 8 bytes was tried)."""
+    data = (FIXTURES / f"{name}.bin").read_bytes()
+    kind = type(decode(data)).__name__
+    shortest = SHORTEST[name]
+    decoded = decode(data[:shortest])
+    assert type(decoded).__name__ == kind
+    assert bytes(decoded) == data[:shortest]
+    for length in range(1, shortest):
+        with pytest.raises(PacketError) as info:
+            decode(data[:length])
+        plural = "byte" if length == 1 else "bytes"
+        assert str(info.value) == (
+            f"truncated {kind}: {length} {plural}, needs at least {shortest}"
+        ), length
+
+
+def test_every_msgpack_packet_a_byte_short_is_refused() -> None:
+    """msgpack packets say their own length: one byte short is an error, whichever kind."""
+    for path in sorted(FIXTURES.glob("*.bin")):
+        data = path.read_bytes()
+        if path.stem in SHORTEST:
+            continue
+        with pytest.raises(PacketError, match=r"truncated packet|needs|expected"):
+            decode(data[:-1])
+
+
 def snapshot_fields(**changes: object) -> bytes:
     fields: dict[str, object] = {
         "session_id": 1,
