@@ -168,6 +168,19 @@ def test_between_two_frames_at_twice_the_rate() -> None:
     assert [s.seq for _, s in steps if isinstance(s, Record)] == list(range(20))
 
 
+def test_between_two_frames_at_three_times_the_rate() -> None:
+    """Each picture between two frames shows its own instant: a third and two thirds of the way
+    (at twice the rate, 0.5 is right whatever t the playout computes)."""
+    arrivals = jittered(20, 10_000)
+    steps = play(JitterBuffer(40_000, FRAME_US / 3, FRAME_US), arrivals, END_US)
+    between = [s for _, s in shows(steps) if s.b is not None]
+    ts = [round(s.t, 2) for s in between]
+    assert set(ts) == {0.33, 0.67} and ts.count(0.33) >= 15 and ts.count(0.67) >= 15, ts
+    for s in between:  # the instant it shows is where t puts it
+        assert s.b is not None and s.b.seq == s.a.seq + 1
+        assert s.media_us - s.a.capture_us == pytest.approx(s.t * FRAME_US, abs=1)
+
+
 def test_a_still_face_holds_until_the_frame_before_the_next() -> None:
     # Frames 5..9 sent no packet (nothing changed): frame 4's values stand until frame 9.
     arrivals = [a for a in jittered(20, 0) if not 5 <= a[1].seq <= 9]

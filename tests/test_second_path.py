@@ -105,6 +105,16 @@ def test_a_frame_delay_is_judged_against_the_fastest_recent_one() -> None:
         assert not drift.late(t + offset + 40_000 + t // 600, t)
 
 
+def test_a_frame_is_late_past_50_ms_as_the_protocol_says() -> None:
+    """The threshold real sessions use (LateFrames()'s default; docs/protocol.md 3.6): 45 ms
+    slower than the fastest recent frame is not late, 55 ms is. (A default of 5 ms sent about
+    three times more second-path copies, and nothing failed.)"""
+    for slower_ms, late in ((45, False), (55, True)):
+        judge = LateFrames()
+        assert not judge.late(1_040_000, 1_000_000)
+        assert judge.late(1_073_333 + slower_ms * 1000, 1_033_333) is late, slower_ms
+
+
 def test_a_receiver_that_reports_late_frames_gets_each_frame_once(
     sender: SenderEndpoint, receiver: ReceiverEndpoint
 ) -> None:
