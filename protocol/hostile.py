@@ -1,15 +1,15 @@
-"""What a receiver says about input it refuses: counted always, logged at most once a second.
+"""What a receiver says about input it refuses: at most one line a second.
 
 A hostile or broken peer can send thousands of refused messages a second; one line each would
-flood the log (and the disk under it). :class:`Refusals` counts each refusal by why, and logs
-one line per REFUSAL_LOG_S at most, with how many it did not log.
+flood the log (and the disk under it). The refusals themselves are counted where they happen
+(the transport's and the receiver's figures); :class:`Refusals` only says so, one line per
+REFUSAL_LOG_S at most, with how many it did not say.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
 from collections.abc import Callable
 
 logger = logging.getLogger(__name__)
@@ -19,20 +19,15 @@ REFUSAL_LOG_S = 1.0
 
 
 class Refusals:
-    """Counts of refused input by kind (``ignored_sessions``, ``refused_snapshots``, ...)."""
+    """The log of refused input, one line a second at most."""
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
-        self.counts: Counter[str] = Counter()
         self._clock = clock
         self._logged_at = -float("inf")
         self._unlogged = 0
 
-    def __getitem__(self, kind: str) -> int:
-        return self.counts[kind]
-
-    def refuse(self, kind: str, why: str) -> None:
-        """Count one refusal of ``kind``; log ``why`` unless a line went out within 1 s."""
-        self.counts[kind] += 1
+    def refuse(self, why: str) -> None:
+        """Log ``why``, unless a line went out within REFUSAL_LOG_S (then count it)."""
         now = self._clock()
         if now - self._logged_at < REFUSAL_LOG_S:
             self._unlogged += 1

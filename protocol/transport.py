@@ -1424,7 +1424,7 @@ class ReceiverEndpoint(_Endpoint):
         if isinstance(packet, Bye) and not self._bye_in_reach(packet.seq):
             self.stats.malformed += 1
             self.refusals.refuse(
-                "malformed", f"refused a Bye at frame {packet.seq}: the sender is near frame "
+                f"refused a Bye at frame {packet.seq}: the sender is near frame "
                 f"{self._newest[0]}"
             )  # fmt: skip
             return False
@@ -1441,7 +1441,7 @@ class ReceiverEndpoint(_Endpoint):
 
     def _ignore(self, why: str) -> None:
         self.stats.ignored_sessions += 1
-        self.refusals.refuse("ignored_sessions", why)
+        self.refusals.refuse(why)
 
 
 def _source(frame: zmq.Frame) -> int:

@@ -330,9 +330,7 @@ def _join(
         except SnapshotError as exc:
             report.refused_snapshots += 1
             refused = f" (a snapshot came, but was refused: {exc})"
-            endpoint.refusals.refuse(
-                "refused_snapshots", f"refused session {snapshot.session_id}'s snapshot: {exc}"
-            )
+            endpoint.refusals.refuse(f"refused session {snapshot.session_id}'s snapshot: {exc}")
 
 
 def _wait_for_session(

@@ -223,3 +223,20 @@ def test_the_senders_own_new_session_still_asks_for_a_rejoin(
     with pytest.raises(RejoinNeeded, match=r"session changed \(7 -> 12\)"):
         for _ in range(100):
             receiver.recv(50)
+
+
+def test_refusals_are_logged_at_most_once_a_second(caplog: pytest.LogCaptureFixture) -> None:
+    from protocol.hostile import Refusals
+
+    now = [100.0]
+    refusals = Refusals(lambda: now[0])
+    with caplog.at_level("WARNING", logger="protocol.hostile"):
+        for _ in range(1000):  # a flood within one second: one line
+            refusals.refuse("ignored a Heartbeat")
+            now[0] += 0.0009
+        now[0] += 0.2
+        refusals.refuse("ignored a Bye")
+    assert [r.getMessage() for r in caplog.records] == [
+        "ignored a Heartbeat",
+        "ignored a Bye (and 999 more refused since the last line)",
+    ]
