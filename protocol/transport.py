@@ -1008,6 +1008,7 @@ class ReceiverEndpoint(_Endpoint):
         self.refusals = Refusals()
         self._session_fd: int | None = None  # the SUB connection that carries the session
         self._gone: set[int] = set()  # SUB connections ended before the session's was known
+        self._handshake_after_gone = False  # and a SUB connection completed its handshake since
         self._snapshot_fd: int | None = None  # the DEALER connection that brought the snapshot
         self._newest: tuple[int, float] = (0, clock())  # newest frame number told, and when
         self._last_heard = clock()
@@ -1092,6 +1093,7 @@ class ReceiverEndpoint(_Endpoint):
         self._read_events()
         self._sub_dropped = False
         self._gone.clear()
+        self._handshake_after_gone = False
         deadline = time.monotonic() + timeout_ms / 1000
         # 1. Prove the subscription is live: probe until SUB has something to read.
         while not self._sub.poll(0, zmq.POLLIN):
@@ -1274,6 +1276,7 @@ class ReceiverEndpoint(_Endpoint):
             self._gone.discard(value)  # a new connection with an old one's number
         elif on_sub and kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
             self.handshake_error = None
+            self._handshake_after_gone = self._handshake_after_gone or bool(self._gone)
             if self._sub_dropped and self.snapshot is not None and self._rejoin_reason is None:
                 self._rejoin_reason = "the sender's connection dropped and came back"
                 logger.info("%s", self._rejoin_reason)
@@ -1417,10 +1420,12 @@ class ReceiverEndpoint(_Endpoint):
             if session is not None:
                 self._session_fd = fd
                 self._read_events()  # (the connection's number may have been taken again)
-                if fd in self._gone:  # it brought the session, then ended: the sender left
-                    self._rejoin_reason = "the sender's connection dropped"
-                    logger.info("%s", self._rejoin_reason)
-                    return False
+                if fd in self._gone:  # it brought the session, then ended
+                    self._sub_dropped = True
+                    if self._handshake_after_gone:  # and another came: 3.2's reconnection
+                        self._rejoin_reason = "the sender's connection dropped and came back"
+                        logger.info("%s", self._rejoin_reason)
+                        return False
         if isinstance(packet, Bye) and not self._bye_in_reach(packet.seq):
             self.stats.malformed += 1
             self.refusals.refuse(
