@@ -318,9 +318,8 @@ def _join(
     deadline = time.monotonic() + timeout_s
     refused = ""
     while True:
-        left = deadline - time.monotonic()
         try:
-            snapshot = _wait_for_session(endpoint, max(left, 0.001), stop, notify)
+            snapshot = _wait_for_session(endpoint, deadline, timeout_s, stop, notify)
         except TransportError as exc:
             raise TransportError(f"{exc}{refused}") from None
         if snapshot is None:
@@ -335,18 +334,19 @@ def _join(
 
 def _wait_for_session(
     endpoint: ReceiverEndpoint,
+    deadline: float,
     timeout_s: float,
     stop: Callable[[], bool],
     notify: Callable[[str], None] = _quiet,
 ) -> Snapshot | None:
-    """The next session's snapshot; None once ``stop()``; TransportError after ``timeout_s``.
+    """The next session's snapshot; None once ``stop()``; TransportError at ``deadline``
+    (``time.monotonic()``; ``timeout_s`` is how long the caller waits in all, for the message).
 
     Without a way to stop (the default) it is one handshake attempt; otherwise attempts of at
     most STOP_CHECK_S, so a stop request is seen soon.
     """
-    if stop is _never and math.isfinite(timeout_s):
-        return endpoint.fetch_snapshot(timeout_ms=_ms(timeout_s))
-    deadline = time.monotonic() + timeout_s
+    if stop is _never and math.isfinite(deadline):
+        return endpoint.fetch_snapshot(timeout_ms=_ms(max(0.001, deadline - time.monotonic())))
     told: str | None = None
     while not stop():
         attempt = _ms(min(STOP_CHECK_S, max(0.001, deadline - time.monotonic())))
