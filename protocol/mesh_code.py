@@ -4,8 +4,8 @@ A person's face mesh differs from MediaPipe's canonical one (models/data, which 
 hold; the rig hash covers it) by a few millimetres, and neighbouring vertices differ alike.
 So each coordinate is sent as an integer number of ``step`` cm from the canonical vertex
 (:func:`quantise`), predicted from the vertex's neighbours already sent, and the prediction's
-error is range-coded (protocol/rangecoder.py). At 0.1 mm a 468-vertex face takes about
-1 KB instead of 2.8 KB as float16: on a 24 kbit/s link the first picture comes 0.6 s sooner.
+error is range-coded (protocol/rangecoder.py). At 0.05 mm a 468-vertex face takes about
+1.2 KB instead of 2.8 KB as float16: on a 24 kbit/s link the first picture comes 0.5 s sooner.
 
 The order and the prediction (docs/protocol.md, section 2, "Coded vertices"): vertices are
 visited breadth first over the triangles' edges, from the lowest-numbered vertex not visited
@@ -27,8 +27,9 @@ from protocol.rangecoder import Decoder, Encoder, IntContexts, decode_sint, enco
 
 #: The snapshot's meta key that says its vertices are coded this way, and their step in cm.
 VERTEX_STEP = "vertex_step"
-#: The step the sender uses: 0.1 mm, a fifth of a pixel where a face is 500 px wide.
-STEP_CM = 0.01
+#: The step the sender uses: 0.05 mm (at 0.1 mm the bundled clip's widest jaw came out 10%
+#: short: the mouth's fit turns on less than that; tests/test_mouth_opening.py).
+STEP_CM = 0.005
 #: Coded integers stay within this (a vertex 3 m from the canonical one is not a face).
 MAX_STEPS = 1 << 20
 

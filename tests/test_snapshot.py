@@ -47,9 +47,9 @@ def test_a_qcif_snapshot_keeps_its_budget_and_both_ends_share_the_mesh() -> None
     snapshot = encoder.start(CapturedFrame(0, frame, 0))
     assert snapshot is not None and encoder.session is not None
     assert len(bytes(snapshot)) <= 12_000  # issue 8's budget for a 176x144 call
-    # The mesh coded against the canonical one: about a third of float16's 2808 bytes.
-    assert snapshot.meta["vertex_step"] == 0.01
-    assert len(mesh_code.encode(snapshot.vertices, 0.01)) < 1400
+    # The mesh coded against the canonical one: under half of float16's 2808 bytes.
+    assert snapshot.meta["vertex_step"] == mesh_code.STEP_CM == 0.005
+    assert len(snapshot.vertex_bytes()) < 1400
     received = decode(bytes(snapshot))
     assert isinstance(received, type(snapshot))
     # The sender fits on the very mesh the receiver deforms.
