@@ -104,6 +104,7 @@ _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
 _ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 MAX_STAMP_AGE_S = 1.0
+RECEIVE_BUFFER_BYTES = 1 << 20
 
 
 def frames_per_datagram(budget_bps: float, fps: float, lossy: bool = False) -> int:
@@ -133,6 +134,10 @@ def _udp_socket(host: str, port: int, bind: bool) -> tuple[socket.socket, tuple[
         if sys.platform.startswith("linux"):
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        with contextlib.suppress(OSError):
+            # Room for a Bye's drain (up to _MAX_DRAIN_DATAGRAMS full datagrams at once) while
+            # the receiver draws a frame (the kernel caps it at net.core.rmem_max).
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
         if bind:
             sock.bind(("0.0.0.0" if host in ("*", "") else host, port))
             return sock, None
