@@ -43,12 +43,7 @@ def _canonical() -> tuple[np.ndarray, tuple[tuple[int, ...], ...], tuple[int, ..
     """The canonical vertices, each vertex's neighbours (ascending) and the visiting order."""
     mesh = load_canonical()
     n = len(mesh.vertices)
-    neighbours: list[set[int]] = [set() for _ in range(n)]
-    for a, b, c in mesh.triangles.tolist():
-        neighbours[a] |= {b, c}
-        neighbours[b] |= {a, c}
-        neighbours[c] |= {a, b}
-    adjacent = tuple(tuple(sorted(s)) for s in neighbours)
+    adjacent = tuple(tuple(sorted(mesh.neighbours(v).tolist())) for v in range(n))
     order: list[int] = []
     seen = [False] * n
     for root in range(n):
