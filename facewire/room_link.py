@@ -184,7 +184,8 @@ class RoomLink:
         """The room's KV bucket, made by whoever comes first: three replicas on a cluster of
         three or more nodes (the snapshots outlive a node), else one."""
         from nats.js.api import KeyValueConfig, StorageType
-        from nats.js.errors import BadRequestError, ServiceUnavailableError
+        from nats.errors import TimeoutError as NatsTimeout
+        from nats.js.errors import BadRequestError, BucketNotFoundError, ServiceUnavailableError
 
         js = self._nc.jetstream()
         nodes = {(u.hostname, u.port) for u in self._nc.servers}
@@ -197,10 +198,13 @@ class RoomLink:
         deadline = asyncio.get_running_loop().time() + BUCKET_WAIT_S
         while True:
             try:
-                return await js.create_key_value(config)
-            except BadRequestError:  # made already, by someone who saw the cluster otherwise
-                return await js.key_value(config.bucket)
-            except ServiceUnavailableError:  # a new cluster still electing its leader
+                try:
+                    return await js.create_key_value(config)
+                except BadRequestError:  # made already, by someone who saw the cluster otherwise
+                    return await js.key_value(config.bucket)
+            # A new cluster still electing its meta leader answers late, or not at all, or
+            # refuses a stream that its peers are still making: all pass within seconds.
+            except (ServiceUnavailableError, NatsTimeout, BucketNotFoundError):
                 if asyncio.get_running_loop().time() > deadline:
                     raise
                 await asyncio.sleep(0.25)

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from facewire.relay import Relay, RelayConfig, free_port
+from facewire.room_link import RoomLink
 from protocol.sframe import RoomKey
 from tests.cli_call import Facewire, kill_all
 
@@ -77,3 +78,18 @@ def test_a_node_dies_under_a_sender(cluster: list[Relay], tmp_path: Path) -> Non
         assert seen["frames"] > 0
         # The freeze the node's death caused (a figure, not a test: it is the machine's load).
         print(f"{name} saw alice's longest freeze: {seen['max_gap_ms']} ms")
+
+
+def test_a_room_opens_on_a_cluster_that_has_only_just_started(cluster: list[Relay]) -> None:
+    # A cluster's first seconds: JetStream's meta leader is still being elected, so making the
+    # room's bucket times out or is refused. Joining waits for it instead of failing.
+    link = RoomLink(
+        [r.config.client_url() for r in cluster], "standup", "alice",
+        on_message=lambda *_: None, notify=lambda _: None,
+    )  # fmt: skip
+    try:
+        link.start()
+        link.put_snapshot(b"sealed")
+        assert link.get_snapshot("alice") == b"sealed"
+    finally:
+        link.close()
