@@ -225,11 +225,12 @@ class FaceDecoder:
         return True
 
     def rem_counts(self) -> dict[str, object]:
-        """REM patches received, applied by region and dropped by reason."""
+        """REM patches received, applied by region, waiting and dropped by reason."""
         if self.rem is None:
             return {
                 "received": self.rem_dropped,
                 "applied": {},
+                "waiting": 0,
                 "dropped": {"no REM": self.rem_dropped},
             }
         return self.rem.counts()

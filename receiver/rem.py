@@ -212,9 +212,11 @@ class RemMerger:
         self.texture = texture
 
     def counts(self) -> dict[str, object]:
-        """Patches received, applied (by region) and dropped (by reason)."""
+        """Patches received, applied (by region), waiting for their frame to be drawn (at the
+        call's end: arrived after its last picture) and dropped (by reason)."""
         return {
             "received": self.received,
             "applied": dict(self.applied),
+            "waiting": len(self._pending),
             "dropped": dict(self.dropped),
         }
