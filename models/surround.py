@@ -23,7 +23,12 @@ used to be. Instead, every frame warps the snapshot frame with a thin-plate spli
 Given a person mask of the snapshot frame (``receiver.person``), only the person is warped
 this way. The scene behind is the snapshot frame with the person painted out, moved by the
 camera alone, so walls and windows near a moving head stay straight. Where the person has
-moved away, that painted-out scene shows.
+moved away, that painted-out scene shows. Then nothing holds the top of the head back: the
+still ring above the eyes moves with the head as the head ring does, so the hair goes
+wherever the head goes. Held still instead, a head that shrinks (a person leaning back)
+pulled its hair into streaks up to the still ring, and past the frame's top edge the warp's
+reflected border mirrored hair into them. What the person layer would take from outside the
+snapshot frame is not the person's: the scene shows there.
 
 The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
 per frame with its centres at the current control points, evaluated on a coarse grid and
@@ -134,6 +139,15 @@ class SurroundWarp:
         upper = outline[:, 1] <= mouth
         self._upper = upper if upper.sum() >= 3 else np.ones(len(outline), bool)
         self._head3 = np.c_[self._head, self._outline3[:, 2]]
+        self._still3 = np.c_[self._still, self._outline3[::2, 2]]
+        # With a person layer the still ring follows the head above the eyes, fading to still
+        # at the mouth (the shoulders below stay); without one it holds the scene in place.
+        self._still_follow = np.zeros(len(self._still))
+        if person is not None:
+            eyes = centre[1]
+            self._still_follow = np.clip(
+                (mouth - self._still[:, 1]) / max(mouth - eyes, 1e-6), 0.0, 1.0
+            )
         # Grid nodes where cv2.resize by GRID_STEP samples them ((j + 0.5) * step - 0.5), so
         # resizing the coarse map is exact bilinear interpolation between nodes.
         nx, ny = -(-self.width // GRID_STEP), -(-self.height // GRID_STEP)
@@ -182,12 +196,17 @@ class SurroundWarp:
             raise ValueError(f"expected outline of {len(self.outline)} points, got {outline.shape}")
         upper = self._upper
         rotation, scale, shift = similarity_3d(self._outline3[upper], outline3[upper])
-        head = (scale * self._head3 @ rotation.T + shift)[:, :2]
-        outline = outline3[:, :2]
-        still = self._head if camera is None else _apply(camera, self._head)
-        head = still + self._follow[:, None] * (head - still)
-        ring = self._still if camera is None else _apply(camera, self._still)
-        now = np.concatenate([outline, head, ring])
+
+        def carried(ring3: np.ndarray, follow: np.ndarray) -> np.ndarray:
+            # Where the head's motion takes a ring, by ``follow``; the rest of the way the
+            # camera's motion does.
+            rigid = (scale * ring3 @ rotation.T + shift)[:, :2]
+            still = ring3[:, :2] if camera is None else _apply(camera, ring3[:, :2])
+            return still + follow[:, None] * (rigid - still)
+
+        head = carried(self._head3, self._follow)
+        ring = carried(self._still3, self._still_follow)
+        now = np.concatenate([outline3[:, :2], head, ring])
         then = np.concatenate([self.outline, self._head, self._still])
         return now, then
 
@@ -255,6 +274,13 @@ class SurroundWarp:
             return moved
         box_in = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         alpha = moved4[box_in][:, :, 3].astype(np.float32) * (1.0 / 255.0)
+        # Past the snapshot frame's edges the reflected border would mirror the person in:
+        # the person layer ends at the edge (over a pixel), the scene shows beyond.
+        sx, sy = map_x[box_in], map_y[box_in]
+        inside = np.minimum(
+            np.minimum(sx, self.width - 1 - sx), np.minimum(sy, self.height - 1 - sy)
+        )
+        alpha *= np.clip(inside + 1.0, 0.0, 1.0)
         if camera is None or _is_still(camera):
             scene = self._scene[y0:y1, x0:x1]
         else:

@@ -222,3 +222,47 @@ def test_hair_follows_the_head_and_no_old_face_shows(tmp_path: Path) -> None:
     uncovered = was & ~now
     assert uncovered.sum() > 500
     assert diff(rebuilt, moved, uncovered) < 0.5 * diff(first, moved, uncovered)
+
+
+def leaning_scene(top: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stripes with a red person whose hair reaches row ``top``: the image, the person mask
+    and the face outline (the hair's crown 60 px above the outline's top)."""
+    image = np.full((H, W, 3), 200, np.uint8)
+    image[::12] = 40
+    person = np.zeros((H, W), np.uint8)
+    face_top = top + 60
+    centre = (240, face_top + 65)
+    cv2.ellipse(person, centre, (75, 125), 0, 0, 360, 1, -1)
+    cv2.rectangle(person, (140, centre[1] + 90), (340, H - 1), 1, -1)
+    image[person.astype(bool)] = (30, 30, 220)
+    return image, person.astype(np.float32), outline(centre=centre)
+
+
+def red(image: np.ndarray) -> np.ndarray:
+    return (image[..., 2].astype(int) - image[..., 1]) > 100
+
+
+def test_a_head_leaning_back_takes_its_hair_along_and_leaves_no_streak_above() -> None:
+    """The person leans back: the face shrinks to 0.7 about its centre and sinks 20 px. The
+    hair shrinks with it; above the crown the scene shows, not hair drawn out towards a still
+    ring (the streak from the top of the head towards the frame's top edge)."""
+    image, person, o = leaning_scene(top=60)
+    centre = o.mean(0)
+    now = centre + [0.0, 20.0] + 0.7 * (o - centre)
+    out = SurroundWarp(image, o, person).warp(now)
+    crown = int(centre[1] + 20 - 0.7 * (centre[1] - 60))  # the hair's top, carried
+    above = np.s_[: crown - 4, 200:280]
+    assert red(image)[above].mean() > 0.4  # there was hair there in the snapshot frame
+    assert red(out)[above].mean() < 0.02
+    assert red(out)[crown + 4 : crown + 30, 225:255].mean() > 0.95  # and the hair is there
+
+
+def test_the_person_layer_ends_at_the_frame_edge() -> None:
+    """Hair cut by the frame's top edge, the head sinking: what the warp would take from
+    above the snapshot frame is not the person's (the reflected border mirrored the hair in,
+    a streak down to the head); the scene shows there."""
+    image, person, o = leaning_scene(top=0)
+    now = o + [0.0, 30.0]
+    out = SurroundWarp(image, o, person).warp(now)
+    assert red(out)[:26, 200:280].mean() < 0.05
+    assert red(out)[34:60, 225:255].mean() > 0.95
