@@ -28,7 +28,8 @@ still ring above the eyes moves with the head as the head ring does, so the hair
 wherever the head goes. Held still instead, a head that shrinks (a person leaning back)
 pulled its hair into streaks up to the still ring, and past the frame's top edge the warp's
 reflected border mirrored hair into them. What the person layer would take from outside the
-snapshot frame is not the person's: the scene shows there.
+snapshot frame is not the person's: the source is padded with the frame's reflection, whose
+person layer is empty, and the scene shows there.
 
 The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
 per frame with its centres at the current control points, evaluated on a coarse grid and
@@ -69,6 +70,8 @@ PERSON_THRESHOLD = 0.2
 PERSON_MARGIN = 0.01
 #: The scene behind the person is painted in at most this many pixels wide, then scaled up.
 INPAINT_WIDTH = 160
+#: The warp's source is the snapshot frame padded by 1/SOURCE_PAD of its longer side.
+SOURCE_PAD = 4
 
 
 def similarity_3d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -166,9 +169,12 @@ class SurroundWarp:
             (int(lo[0]), int(min(hi[0], self.width))),
             (int(lo[1]), int(min(hi[1], self.height))),
         )
-        self._pixels = np.meshgrid(
+        # The source is padded (below): the warp's maps count from its corner.
+        self._pad = GRID_STEP * -(-max(self.width, self.height) // (SOURCE_PAD * GRID_STEP))
+        grid = np.meshgrid(
             np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
         )
+        self._pixels = {0: grid, self._pad: [g + self._pad for g in grid]}
         # The person layer's weight rides in the fourth channel, so one remap moves both
         # (and OpenCV remaps four channels faster than three).
         self._layered = person is not None
@@ -180,7 +186,12 @@ class SurroundWarp:
             weight, painted = _person_layer(person)
             alpha = np.round(255.0 * weight).astype(np.uint8)
             self._scene = _paint_out(background, painted)
-        self._source = np.dstack([background, alpha])
+        # Padded by the frame's reflection, whose person layer is empty: what the warp takes
+        # from beyond the snapshot frame's edges is scene, never a mirrored person.
+        pad = self._pad
+        colour = cv2.copyMakeBorder(background, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+        layer = cv2.copyMakeBorder(alpha, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+        self._source = np.dstack([colour, layer])
 
     def controls(
         self, outline: np.ndarray, camera: np.ndarray | None = None
@@ -215,13 +226,15 @@ class SurroundWarp:
         outline: np.ndarray,
         camera: np.ndarray | None = None,
         box: tuple[int, int, int, int] | None = None,
+        origin: int = 0,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Full-size float32 maps (x, y) for ``cv2.remap``: the snapshot pixel each output
         pixel shows; with ``box`` (x0, y0, x1, y1), the maps of that part of the frame.
 
         The displacement is the camera's (exact, everywhere) plus the head's: a thin-plate
         spline through the head's controls, faded to nothing just beyond the still ring, so
-        the scene further out is untouched by the head.
+        the scene further out is untouched by the head. ``origin``: where the snapshot frame's
+        pixel (0, 0) lies in the image remapped (0, or the warp's padding).
         """
         camera = None if _is_still(camera) else camera
         now, then = self.controls(outline, camera)
@@ -245,7 +258,7 @@ class SurroundWarp:
         full = cv2.resize(part, size, interpolation=cv2.INTER_LINEAR)
         ox, oy = c0 * GRID_STEP, r0 * GRID_STEP
         full = full[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
-        pixels_x, pixels_y = (p[y0:y1, x0:x1] for p in self._pixels)
+        pixels_x, pixels_y = (p[y0:y1, x0:x1] for p in self._pixels[origin])
         return full[..., 0] + pixels_x, full[..., 1] + pixels_y
 
     def warp(
@@ -256,7 +269,7 @@ class SurroundWarp:
     ) -> np.ndarray:
         """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along; with
         ``box`` (x0, y0, x1, y1) only that part of it (the sender measures around the face)."""
-        map_x, map_y = self.source_map(outline, camera, box)
+        map_x, map_y = self.source_map(outline, camera, box, self._pad)
         bx0, by0, bx1, by1 = (0, 0, self.width, self.height) if box is None else box
         # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
         # shows as a black band.
@@ -274,13 +287,6 @@ class SurroundWarp:
             return moved
         box_in = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         alpha = moved4[box_in][:, :, 3].astype(np.float32) * (1.0 / 255.0)
-        # Past the snapshot frame's edges the reflected border would mirror the person in:
-        # the person layer ends at the edge (over a pixel), the scene shows beyond.
-        sx, sy = map_x[box_in], map_y[box_in]
-        inside = np.minimum(
-            np.minimum(sx, self.width - 1 - sx), np.minimum(sy, self.height - 1 - sy)
-        )
-        alpha *= np.clip(inside + 1.0, 0.0, 1.0)
         if camera is None or _is_still(camera):
             scene = self._scene[y0:y1, x0:x1]
         else:
