@@ -48,7 +48,7 @@ WAITED_US = 200
 LINGER_S = 0.5
 #: How long a receiver whose sender's packets name another session waits for that session's
 #: snapshot before it takes the session as ended.
-SCENE_FETCH_S = 5.0
+SCENE_FETCH_S = 10.0
 
 
 @dataclass

@@ -17,8 +17,8 @@ from sender.encoder import FaceEncoder
 from sender.scene_cut import SceneCut, another_face
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
-BEFORE, AFTER = 30, 90  # frames of the bundled clip, then of the other scene (3 s: its session
-# takes a second to start on a busy machine)
+BEFORE, AFTER = 30, 150  # frames of the bundled clip, then of the other scene (5 s: its session
+# takes a second to start on a busy machine, seconds on a very busy one)
 
 
 def bundled(count: int) -> list[np.ndarray]:
