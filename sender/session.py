@@ -150,8 +150,8 @@ class _SceneStart:
     """A new scene's session, started from ``frame`` on a thread of its own: the pseudo-inverse
     of its wires takes 50 ms on a quiet machine and seconds when the other core is busy (numpy
     leaves the GIL), long enough for a receiver to take the sender for gone. Meanwhile the
-    call's loop touches neither the encoder nor the back channel, and keeps the link alive;
-    it serves the snapshot as soon as it is made, before the fit is ready."""
+    call's loop leaves the encoder alone (the back channel's requests wait for it), keeps the
+    link alive, and serves the snapshot as soon as it is made, before the fit is ready."""
 
     def __init__(self, encoder: FaceEncoder, frame: CapturedFrame) -> None:
         self.frame = frame
