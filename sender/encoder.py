@@ -221,6 +221,7 @@ class FaceEncoder:
         self.call_id = 0
         self._face_box: tuple[float, float, float] | None = None
         self._new_scene = False  # a cut or another face seen, and no session from it yet
+        self._left: tuple[np.ndarray, np.ndarray] | None = None  # the scene before the cut
 
     def start(
         self,
@@ -369,7 +370,15 @@ class FaceEncoder:
         """
         if self.scene_cut is None or self.session is None:
             return False
-        self._new_scene |= self.scene_cut.changed(frame.image)
+        cut = self.scene_cut.changed(frame.image)
+        if self._new_scene and self._left is not None and self.scene_cut.like(self._left):
+            # No session came of it, and the scene left is back: the cut was a black frame,
+            # a flash, a hand over the lens.
+            self._new_scene, self._left = False, None
+            return False
+        if cut and not self._new_scene:
+            self._left = self.scene_cut.before
+        self._new_scene |= cut
         return self._new_scene
 
     def prepare_fit(self) -> None:
@@ -393,7 +402,7 @@ class FaceEncoder:
         if snapshot is None:
             self.session_id = old
             return None
-        self._new_scene = False
+        self._new_scene, self._left = False, None
         self.scenes += 1
         logger.info("another scene at frame %d: session %d of call %d", frame.index,
                     self.session_id, self.call_id)  # fmt: skip

@@ -31,11 +31,14 @@ FACE_JUMP = 1.0
 #: ...and so is one whose width changes by this factor (either way).
 FACE_RESIZE = 1.5
 
+#: A frame's colour histogram and grey thumbnail.
+Features = tuple[np.ndarray, np.ndarray]
+
 _HIST_SIZE = (64, 48)
 _GREY_SIZE = (16, 12)
 
 
-def _features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _features(image: np.ndarray) -> Features:
     small = cv2.resize(image, _HIST_SIZE, interpolation=cv2.INTER_AREA)
     hist = cv2.calcHist([small], [0, 1, 2], None, [8, 8, 8], [0, 256] * 3)
     cv2.normalize(hist, hist, 1.0, 0.0, cv2.NORM_L1)
@@ -63,19 +66,27 @@ class SceneCut:
     """Looks at every frame; :meth:`changed` is True on the first frame of another scene."""
 
     def __init__(self) -> None:
-        #: The last frame's features (None before the first frame).
-        self.last: tuple[np.ndarray, np.ndarray] | None = None
+        #: The features of the last frame and of the one before it (None: not seen yet).
+        self.last: Features | None = None
+        self.before: Features | None = None
         #: The cuts seen so far (frames of another scene).
         self.cuts = 0
 
     def changed(self, image: np.ndarray) -> bool:
         """Whether ``image`` (h, w, 3) uint8 BGR shows another scene than the frame before."""
-        hist, grey = _features(image)
-        last, self.last = self.last, (hist, grey)
-        if last is None:
+        self.before, self.last = self.last, _features(image)
+        if self.before is None or not _apart(self.before, self.last):
             return False
-        colours = cv2.compareHist(last[0], hist, cv2.HISTCMP_BHATTACHARYYA)
-        layout = float(np.abs(grey - last[1]).mean())
-        cut = colours > HISTOGRAM_CUT and layout > THUMBNAIL_CUT
-        self.cuts += int(cut)
-        return cut
+        self.cuts += 1
+        return True
+
+    def like(self, features: Features) -> bool:
+        """Whether the last frame shows the scene of a frame's ``features`` (:attr:`last`)."""
+        return self.last is not None and not _apart(features, self.last)
+
+
+def _apart(a: Features, b: Features) -> bool:
+    """Whether two frames' features (:func:`_features`) are two scenes'."""
+    colours = cv2.compareHist(a[0], b[0], cv2.HISTCMP_BHATTACHARYYA)
+    layout = float(np.abs(a[1] - b[1]).mean())
+    return bool(colours > HISTOGRAM_CUT and layout > THUMBNAIL_CUT)

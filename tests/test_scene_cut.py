@@ -124,3 +124,13 @@ def test_until_the_new_scene_comes_the_old_picture_stays(demo: tuple) -> None:
     assert all(a or b for a, b in zip(new, held, strict=True))
     first = new.index(True)
     assert all(new[first:])
+
+
+def test_a_black_frame_is_no_new_scene() -> None:
+    """A frame that shows nothing (a flash, a hand over the lens) and then the same scene
+    again: no session is started, the call goes on with its own."""
+    frames = bundled(40)
+    frames[20] = np.zeros_like(frames[20])
+    pictures, scenes = _call(frames, scenes=True)
+    assert scenes == 0
+    assert _off(pictures[-1], frames[-1]) < 12.0
