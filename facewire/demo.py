@@ -193,6 +193,15 @@ def _call(
         "frames_untracked": encoder.frames_untracked,
         "frames_over_rate": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
         "quantiser_clipped": encoder.values_clipped,
+        # New scenes: the sender's cuts, and seconds from the capture of each one's first
+        # frame to its first picture on the receiver's screen (one host: one clock).
+        "scenes": sender.scenes,
+        "scene_first_s": [
+            (shown - captured) / 1e6
+            for captured, shown in zip(
+                sender.scene_capture_us, report.get("scene_shown_us", []), strict=False
+            )
+        ],
         "width": video.width,
         "height": video.height,
         "fps": video.fps,
@@ -275,6 +284,9 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
         f"rem {k['rem']:.1f}  snapshot {k['snapshot']:.1f}  "
         f"control {k['control']:.2f}  audio {k['audio']:.1f}{spare}  total {k['total']:.1f}"
     )
+    if stats.get("scenes"):
+        firsts = ", ".join(f"{s:.2f}" for s in stats["scene_first_s"])
+        print(f"scenes: {stats['scenes']} cuts, each one's first picture after {firsts} s")
     fit = stats.get("fit_residual") or {}
     if fit.get("sent_px"):
         f, sent = fit["fit_px"], fit["sent_px"]

@@ -44,11 +44,25 @@ class Loopback:
         self.shown: FrameValues | None = None
         #: Patch packets the receiver could not use (see FaceDecoder.add_patch).
         self.refused = 0
+        #: New scenes (sessions started at a cut).
+        self.scenes = 0
 
     def send(self, frame: CapturedFrame) -> list[bytes]:
         """The sender's side of ``frame``: its REM patches, then its frame packet (if any),
-        as bytes."""
+        as bytes. A frame of another scene starts a new session first (the receiver is built
+        again from its snapshot: :attr:`scenes` counts them)."""
+        if self.encoder.scene_changed(frame):
+            scene = self.encoder.start_scene(frame)
+            if scene is not None:
+                self._join(scene)
+                self.scenes += 1
         return self.send_analysed(frame, self.encoder.analyse(frame.image))
+
+    def _join(self, snapshot: Snapshot) -> None:
+        self.decoder.close()
+        self.snapshot = decode(bytes(snapshot))  # type: ignore[assignment]
+        self.decoder = FaceDecoder(self.snapshot)
+        self.shown = None
 
     def send_analysed(
         self, frame: CapturedFrame, analysed: tuple[Pose, np.ndarray] | None

@@ -183,8 +183,8 @@ class RoomLink:
     async def _bucket(self) -> Any:
         """The room's KV bucket, made by whoever comes first: three replicas on a cluster of
         three or more nodes (the snapshots outlive a node), else one."""
-        from nats.js.api import KeyValueConfig, StorageType
         from nats.errors import TimeoutError as NatsTimeout
+        from nats.js.api import KeyValueConfig, StorageType
         from nats.js.errors import BadRequestError, BucketNotFoundError, ServiceUnavailableError
 
         js = self._nc.jetstream()

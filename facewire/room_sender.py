@@ -120,8 +120,12 @@ class RoomSender:
     def heartbeat_if_idle(self) -> bool:
         if self._clock() - self._last_publish < HEARTBEAT_INTERVAL_S:
             return False
-        self.publish(Heartbeat(self._session_id, self._last_seq, now_us()))
+        self.heartbeat()
         return True
+
+    def heartbeat(self) -> None:
+        """A Heartbeat now (``run_sender`` says a new scene's session with one)."""
+        self.publish(Heartbeat(self._session_id, self._last_seq, now_us()))
 
     def patch_budget_bps(self) -> float:
         headers = DATAGRAM_COST * 8 * self._bundler.fps / self._bundler.k

@@ -166,6 +166,14 @@ REFINE_ATTEMPTS: Final = 3
 #: at 150-250 kbit/s, while a 48 kbit/s link cannot bring it faster than 48.
 SNAPSHOT_MS: Final = "snapshot_ms"
 FAST_JOIN_BPS: Final = 96_000
+#: Snapshot meta of a new scene's session (the camera cut to another shot: the sender starts a
+#: session from it): the id of the session that began the call it goes on. A receiver of that
+#: call rejoins it in the same call; any other session is a restarted sender's (docs/protocol.md
+#: 8.9).
+CALL: Final = "call"
+#: ReceiverStats name, sent instead of "ready" when a receiver has joined a new scene's
+#: session of its call (with SNAPSHOT_MS).
+SCENE: Final = "scene"
 #: After a receiver's last report of late frames, the sender keeps sending it a second copy of
 #: every frame packet, over the ROUTER/DEALER connection, for this long.
 SPARE_PATH_HOLD_S: Final = 30.0

@@ -161,7 +161,16 @@ class TransportError(RuntimeError):
 
 
 class RejoinNeeded(TransportError):
-    """The update stream no longer belongs to the snapshot: call fetch_snapshot() again."""
+    """The update stream no longer belongs to the snapshot: call fetch_snapshot() again.
+
+    ``session``: the session the stream's packets now name, where that is what changed (a
+    restarted sender, or a new scene of the call: its snapshot says which); None when the
+    connection dropped and came back.
+    """
+
+    def __init__(self, reason: str, session: int | None = None) -> None:
+        super().__init__(reason)
+        self.session = session
 
 
 @dataclass
@@ -479,6 +488,8 @@ class SenderEndpoint(_Endpoint):
         self._draft_bytes = b""
         # identity -> (when the full snapshot may go (again), attempts left) after a draft
         self._refine: dict[bytes, tuple[float, int]] = {}
+        # Receivers whose draft came fast: a later snapshot (a new scene's) goes to them whole.
+        self._fast: set[bytes] = set()
         self.refinements_sent = 0
         self._inbox: deque[Packet] = deque()
         self._last_publish = clock()
@@ -696,8 +707,13 @@ class SenderEndpoint(_Endpoint):
         """Publish a Heartbeat if nothing was published for HEARTBEAT_INTERVAL_S; True if sent."""
         if self._clock() - self._last_publish < HEARTBEAT_INTERVAL_S:
             return False
-        self.publish(self._heartbeat())
+        self.heartbeat()
         return True
+
+    def heartbeat(self) -> None:
+        """Publish a Heartbeat now (after :meth:`set_snapshot` of another session, it tells the
+        receivers at once that the stream goes on in that session)."""
+        self.publish(self._heartbeat())
 
     def _heartbeat(self) -> Heartbeat:
         session = self._snapshot.session_id if self._snapshot is not None else 0
@@ -768,6 +784,7 @@ class SenderEndpoint(_Endpoint):
             self._accept(packet, data)
             self._inbox.append(packet)
             if isinstance(packet, ReceiverStats) and packet.values.get("left"):
+                self._fast.discard(identity)
                 if self._media is not None:
                     self._media.forget(identity)
             if isinstance(packet, ReceiverStats) and (
@@ -842,7 +859,8 @@ class SenderEndpoint(_Endpoint):
                 self._accept_sent(key, data)
             reply = self._snapshot_bytes
             bare_s = self._transfer_s() / SNAPSHOT_TRANSFER_ROOM
-            if self._draft_bytes and self._media is not None and bare_s > DRAFT_ABOVE_S:
+            thin = bare_s > DRAFT_ABOVE_S and identity not in self._fast
+            if self._draft_bytes and self._media is not None and thin:
                 reply = self._draft_bytes
                 self._refine[identity] = (now, REFINE_ATTEMPTS)
             # Never blocks: a peer that left SNAPSHOT_HWM replies unread gets no more.
@@ -869,6 +887,8 @@ class SenderEndpoint(_Endpoint):
         if not snapshot_ms or len(self._draft_bytes) * 8 / (snapshot_ms / 1000) < FAST_JOIN_BPS:
             return
         del self._refine[identity]
+        if len(self._fast) < MAX_SNAPSHOT_PEERS:
+            self._fast.add(identity)
         self._send_full(identity)
 
     def _send_full(self, identity: bytes) -> None:
@@ -1011,6 +1031,7 @@ class ReceiverEndpoint(_Endpoint):
         self._handshake_after_gone = False  # and a SUB connection completed its handshake since
         self._snapshot_fd: int | None = None  # the DEALER connection that brought the snapshot
         self._newest: tuple[int, float] = (0, clock())  # newest frame number told, and when
+        self._rejoin_session: int | None = None
         self._last_heard = clock()
         self._last_seq = 0
         self._bye = False
@@ -1175,7 +1196,9 @@ class ReceiverEndpoint(_Endpoint):
             # that connection brings, so no update of a new session is taken for the old one.
             self._read_events()
             if self._rejoin_reason is not None:
-                raise RejoinNeeded(f"{self._rejoin_reason}; call fetch_snapshot() to rejoin")
+                raise RejoinNeeded(
+                    f"{self._rejoin_reason}; call fetch_snapshot() to rejoin", self._rejoin_session
+                )
             self._report_late()
             self._read_datagrams()
             if self._datagram_packets:
@@ -1243,6 +1266,7 @@ class ReceiverEndpoint(_Endpoint):
         """Drop the old stream before a rejoin: its queued updates must not pass as new ones."""
         self.snapshot = None
         self._rejoin_reason = None
+        self._rejoin_session = None
         self._bye = False
         self._session_fd = None
         for _ in range(4 * UPDATE_HWM):
@@ -1365,6 +1389,10 @@ class ReceiverEndpoint(_Endpoint):
             self.stats.duplicates += 1
             return None
         if isinstance(packet, Snapshot):
+            if packet.session_id != self.session_id:
+                # A full snapshot still in flight for a session left (docs/protocol.md 8.7).
+                logger.debug("dropped a snapshot of session %d", packet.session_id)
+                return None
             self._take_snapshot(packet, data)
             return packet
         assert self.snapshot is not None
@@ -1409,6 +1437,7 @@ class ReceiverEndpoint(_Endpoint):
                 return False  # a probe's answer from before the sender had a session
             if not spare and (fd is None or fd == self._session_fd):
                 self._rejoin_reason = f"the sender's session changed ({mine} -> {session})"
+                self._rejoin_session = session
                 logger.info("%s", self._rejoin_reason)
             else:
                 self._ignore(f"ignored a {kind} of session {session}: session {mine} is live")

@@ -138,6 +138,8 @@ class FaceDecoder:
             at_snapshot = self._drawable(reference)
         except PacketError as exc:
             raise SnapshotError(f"snapshot reference: {exc}") from None
+        #: The snapshot frame's own values: drawn, they give the snapshot frame back.
+        self.reference = reference
         #: Live patches of the eyes and the mouth's inside (None: the sender sends none).
         self.rem = self._rem(snapshot)
         #: REM patches that came without a session able to take them.

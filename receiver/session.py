@@ -22,7 +22,7 @@ import numpy as np
 
 from protocol.channels import ChainBroken, FrameValues
 from protocol.clock import now_us
-from protocol.constants import REFINED, SNAPSHOT_MS
+from protocol.constants import CALL, REFINED, SCENE, SNAPSHOT_MS
 from protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from receiver.audio import CallSound
@@ -46,6 +46,9 @@ STOP_CHECK_S = 0.5
 WAITED_US = 200
 #: Time a stopped receiver gives its last message ("left") to reach the sender.
 LINGER_S = 0.5
+#: How long a receiver whose sender's packets name another session waits for that session's
+#: snapshot before it takes the session as ended.
+SCENE_FETCH_S = 10.0
 
 
 @dataclass
@@ -58,6 +61,11 @@ class ReceiverReport:
     keyframe_requests: int = 0
     chain_breaks: int = 0
     sessions: int = 0  # sessions joined (a restarted sender starts a new one)
+    # New scenes of the call (the sender cut to another shot: a session that follows on), and
+    # for each, when its first picture went on screen (µs, this end's clock: against the
+    # sender's capture of the scene's first frame where both share one).
+    scenes: int = 0
+    scene_shown_us: list[int] = field(default_factory=list)
     # Runs of frames shown stale because packets were lost: (first seq, frames) per run.
     freezes: list[tuple[int, int]] = field(default_factory=list)
     # Per session: seconds from asking for its snapshot to its first rendered frame.
@@ -107,6 +115,8 @@ class ReceiverReport:
             "keyframe_requests": self.keyframe_requests,
             "chain_breaks": self.chain_breaks,
             "sessions": self.sessions,
+            "scenes": self.scenes,
+            "scene_shown_us": list(self.scene_shown_us),
             "freezes": [list(f) for f in self.freezes],
             "first_frame_s": list(self.first_frame_s),
             "receiver_fps": self.frames_out / self.busy_s if self.busy_s > 0 else 0.0,
@@ -240,29 +250,49 @@ def run_receiver(
         )
         audio = CallSound(report.shown, snapshot.seq, snapshot.fps, notify) if sound else None
         try:
+            scene: _Ended | None = None  # the scene before, when this session follows on it
+            before = report.frames_out
+            # The call's first session, as its new scenes' snapshots name it.
+            call: str | int | float = snapshot.session_id
             while joined is not None:
                 snapshot, decoder = joined
-                report.sessions += 1
+                if scene is None:
+                    call = snapshot.meta.get(CALL, snapshot.session_id)
+                    report.sessions += 1
+                    before = report.frames_out
+                    notify(
+                        f"session {snapshot.session_id}: {snapshot.width}x{snapshot.height} at "
+                        f"{snapshot.fps:g} fps"
+                    )
+                else:
+                    report.scenes += 1
+                    notify(f"a new scene from frame {snapshot.seq}")
                 report.keyframe_interval = snapshot.keyframe_interval
-                notify(
-                    f"session {snapshot.session_id}: {snapshot.width}x{snapshot.height} at "
-                    f"{snapshot.fps:g} fps"
-                )
                 out = _Output(recorder, sink, snapshot.session_id, report)
-                before = report.frames_out
-                report.ended_by = _receive_session(
-                    endpoint, decoder, snapshot, out, report, started, stop, settings, audio
+                ended = _receive_session(
+                    endpoint, decoder, snapshot, out, report, started, stop, settings, audio, scene
                 )
+                report.ended_by = ended.reason
                 frames = report.frames_out - before
-                joined = None
+                joined, scene = None, None
                 if report.ended_by == "stopped":
                     break
+                if ended.session is not None:
+                    # The sender's packets name another session: a new scene of this call, or
+                    # a restarted sender. Its snapshot says which.
+                    started = time.monotonic()
+                    joined = _next_session(endpoint, stop, report, notify)
+                    if joined is not None and joined[0].meta.get(CALL) == call:
+                        scene = ended
+                        continue
                 waiting = rejoin_timeout_s > 0
                 notify(
                     f"session ended ({report.ended_by}) after {frames} frames"
                     + ("; waiting for a new session" if waiting else "")
                 )
-                if waiting:
+                if not waiting:
+                    joined = None
+                elif joined is None:
                     started = time.monotonic()
                     try:
                         joined = _join(endpoint, rejoin_timeout_s, stop, report, notify)
@@ -332,6 +362,21 @@ def _join(
             endpoint.refusals.refuse(f"refused session {snapshot.session_id}'s snapshot: {exc}")
 
 
+def _next_session(
+    endpoint: ReceiverEndpoint,
+    stop: Callable[[], bool],
+    report: ReceiverReport,
+    notify: Callable[[str], None],
+) -> tuple[Snapshot, FaceDecoder] | None:
+    """The session the sender's packets now name: its snapshot and decoder (None: it did not
+    come within SCENE_FETCH_S, or ``stop()``)."""
+    try:
+        return _join(endpoint, SCENE_FETCH_S, stop, report, notify)
+    except TransportError as exc:
+        logger.info("the sender's new session did not come: %s", exc)
+        return None
+
+
 def _wait_for_session(
     endpoint: ReceiverEndpoint,
     deadline: float,
@@ -394,6 +439,16 @@ class _Output:
             self.sink(RenderedFrame(self.session_id, seq, image, media_us, latency_ms), self.report)
 
 
+@dataclass
+class _Ended:
+    """Why a session's loop ended, and where its recording stands."""
+
+    reason: str
+    session: int | None = None  # the session the sender's packets went on with
+    last: np.ndarray | None = None  # the recording's last picture
+    next_seq: int = 0  # the recording's next frame
+
+
 def _receive_session(
     endpoint: ReceiverEndpoint,
     decoder: FaceDecoder,
@@ -404,23 +459,31 @@ def _receive_session(
     stop: Callable[[], bool],
     settings: PlayoutSettings,
     audio: CallSound | None = None,
-) -> str:
-    """Rebuild, show and record one session's frames; returns why it ended."""
+    scene: _Ended | None = None,
+) -> _Ended:
+    """Rebuild, show and record one session's frames; returns why it ended.
+
+    ``scene``: the end of the session this one follows on (the sender cut to a new scene): its
+    last picture stays on screen, and in the recording, until this one's first.
+    """
     try:
         playout = make_playout(settings, snapshot.fps)
         report.display_fps = settings.display_fps or snapshot.fps
-        player = _Player(Painter(decoder), out, report, snapshot, started)
+        player = _Player(Painter(decoder), out, report, snapshot, started, scene)
         lateness = LateFrames()
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
-        # ask for the keyframe that starts our chain.
-        endpoint.send_stats({"ready": 1.0, SNAPSHOT_MS: endpoint.snapshot_ms})
+        # ask for the keyframe that starts our chain. A new scene's receiver is no new one.
+        joined = SCENE if scene is not None else "ready"
+        endpoint.send_stats({joined: 1.0, SNAPSHOT_MS: endpoint.snapshot_ms})
+        if scene is not None:
+            player.scene_still(decoder.reference)
         endpoint.request_keyframe(snapshot.seq)
         last_request = time.monotonic()
         broken = False  # the chain broke since the last frame decoded
         needed = snapshot.seq  # the first frame not decoded yet
         while True:
             if stop():
-                return "stopped"
+                return player.ended("stopped")
             try:
                 waited_from = now_us()
                 packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(waited_from) / 1e6))
@@ -454,7 +517,7 @@ def _receive_session(
                             needed = max(needed, values.seq + 1)
                     packet = endpoint.recv(timeout_ms=0)
             except RejoinNeeded as exc:
-                return f"sender restarted ({exc})"
+                return player.ended(f"sender restarted ({exc})", exc.session)
             if not decoder.channels.intact:
                 if time.monotonic() - last_request > KEYFRAME_RETRY_S:
                     endpoint.request_keyframe(needed)
@@ -469,9 +532,9 @@ def _receive_session(
                     player.run(playout.poll(now_us()), endpoint)
                 _note_playout(report, playout)
                 report.frames_held += _hold(out, player.last, packet.seq - player.next_seq)
-                return "bye"
+                return player.ended("bye")
             if packet is None and not playout.pending and not endpoint.peer_alive:
-                return "peer lost"
+                return player.ended("peer lost")
     finally:
         for key, value in decoder.rem_counts().items():
             report.rem[key] = _added(report.rem.get(key), value)
@@ -502,6 +565,7 @@ class _Player:
         report: ReceiverReport,
         snapshot: Snapshot,
         started: float,
+        scene: _Ended | None = None,
     ) -> None:
         self.painter = painter
         self.out = out
@@ -511,6 +575,26 @@ class _Player:
         self.next_seq = snapshot.seq  # the recording's next frame
         self.last: np.ndarray | None = None  # the recording's last picture
         self.stale_from: int | None = None  # first frame of a freeze (packets were lost)
+        # A new scene: the scene before stays until its first picture (whose time is noted).
+        self.new_scene = scene is not None
+        if scene is not None:
+            self.last, self.next_seq = scene.last, scene.next_seq
+
+    def scene_still(self, values: FrameValues) -> None:
+        """A new scene's first frame (its snapshot frame, drawn from its ``values``) on screen
+        and in the recording at once: what the camera showed at the cut, until its frames
+        come."""
+        start = time.perf_counter()
+        self.record(Record(values.seq, values))
+        assert self.last is not None
+        ready = now_us()
+        self.report.scene_shown_us.append(ready)
+        self.new_scene = False
+        self.out.show(self.last, values.seq, ready, 0.0)
+        self.report.busy_s += time.perf_counter() - start
+
+    def ended(self, reason: str, session: int | None = None) -> _Ended:
+        return _Ended(reason, session, self.last, self.next_seq)
 
     def run(self, steps: list[Step], endpoint: ReceiverEndpoint) -> None:
         for step in steps:
@@ -557,6 +641,9 @@ class _Player:
         ready = now_us()
         latency_ms = (ready - step.media_us) / 1000.0
         report = self.report
+        if self.new_scene:
+            report.scene_shown_us.append(ready)
+            self.new_scene = False
         report.latency_ms.append(latency_ms)
         report.shown.append((ready, step.media_us))
         if step.arrival_us is not None:

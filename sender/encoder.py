@@ -51,7 +51,7 @@ from models.rig import Rig, load_rig
 from models.wires import WireDeformer
 from protocol import mesh_code
 from protocol.channels import ChannelEncoder, ChannelSpec
-from protocol.constants import UINT32_MAX
+from protocol.constants import CALL, UINT32_MAX
 from protocol.images import decode_image
 from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
 from protocol.quant import dequantise, quantise
@@ -64,6 +64,7 @@ from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from sender.lift import MarkerFaceTracker, MarkerFit
 from sender.rate_cap import EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from sender.rem import RemEncoder
+from sender.scene_cut import SceneCut, another_face, face_box
 from sender.synthesis import FaceSynthesis
 from sender.texture import UvRasteriser
 
@@ -160,6 +161,7 @@ class FaceEncoder:
         synthesis: bool = True,
         edge: bool = True,
         edge_kbps: float | None = EDGE_KBPS,
+        scenes: bool = True,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -212,16 +214,36 @@ class FaceEncoder:
         self._edge_smoother: ChannelSmoother | None = None
         #: Bytes of the frame packets that were the edge corrections' share.
         self.edge_bytes = 0.0
+        #: Cuts to another scene, each starting a session (None: one session, whatever comes).
+        self.scene_cut = SceneCut() if scenes else None
+        #: Sessions started for a new scene, and the session that began the call (0: none yet).
+        self.scenes = 0
+        self.call_id = 0
+        self._face_box: tuple[float, float, float] | None = None
+        self._new_scene = False  # a cut or another face seen, and no session from it yet
+        self._left: tuple[np.ndarray, np.ndarray] | None = None  # the scene before the cut
 
-    def start(self, frame: CapturedFrame, seq: int | None = None) -> Snapshot | None:
+    def start(
+        self,
+        frame: CapturedFrame,
+        seq: int | None = None,
+        call: int | None = None,
+        fit_now: bool = True,
+    ) -> Snapshot | None:
         """Build the session model from ``frame``; None if it shows no face.
 
-        ``seq`` is the first frame number the snapshot is valid for (default: this frame's).
+        ``seq`` is the first frame number the snapshot is valid for (default: this frame's);
+        ``call``: the session that began the call this one goes on (a new scene's). Without
+        ``fit_now`` the wire fit's pseudo-inverse, which the snapshot does not need, waits for
+        :meth:`prepare_fit` (or the first frame).
         """
         found = self.tracker.track(frame.image)
         if not isinstance(found, Landmarks):  # a marker tracker gives landmarks here too
             return None
+        if self.scene_cut is not None and self.scene_cut.last is None:
+            self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
         points = found.points
+        self._face_box = None  # the next frame's face is this one's: no jump to look for
         pose = estimate_pose(
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
@@ -247,6 +269,8 @@ class FaceEncoder:
             "texture_size": side,
             mesh_code.VERTEX_STEP: mesh_code.STEP_CM,
         }
+        if call is not None:
+            meta[CALL] = call
         if self.use_rem:
             face = np.ptp(points[:, 0])
             wanted = max(MIN_REM_PATCH_SIZE, texture_size(face, REM_TEXELS_PER_FACE_PIXEL))
@@ -269,7 +293,8 @@ class FaceEncoder:
         if isinstance(self.tracker, MarkerFaceTracker):
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
-        self.wires.prepare_fit()
+        if fit_now:
+            self.wires.prepare_fit()
         self.mouth = MouthOpening(mesh, self.rig)
         self.rest_params = self.wires.rest_params()
         self._projector = self.basis.projector(self.wires.matrix)
@@ -337,11 +362,67 @@ class FaceEncoder:
             meta=meta,
         )
 
+    def scene_changed(self, frame: CapturedFrame) -> bool:
+        """Whether ``frame`` shows another scene than the session's (a cut, or another face:
+        sender/scene_cut.py), and no session has been started from it yet. Look at every
+        frame before encoding it; while True, :meth:`start_scene` starts one (the frame
+        packets until then would draw the face over a scene it does not belong to).
+        """
+        if self.scene_cut is None or self.session is None:
+            return False
+        cut = self.scene_cut.changed(frame.image)
+        if self._new_scene and self._left is not None and self.scene_cut.like(self._left):
+            # No session came of it, and the scene left is back: the cut was a black frame,
+            # a flash, a hand over the lens.
+            self._new_scene, self._left = False, None
+            return False
+        if cut and not self._new_scene:
+            self._left = self.scene_cut.before
+        self._new_scene |= cut
+        return self._new_scene
+
+    def prepare_fit(self) -> None:
+        """Compute the session's wire fit now (see :meth:`start`'s ``fit_now``)."""
+        assert self.wires is not None, "start() first"
+        self.wires.prepare_fit()
+
+    def start_scene(self, frame: CapturedFrame, fit_now: bool = True) -> Snapshot | None:
+        """The snapshot of a new session from ``frame``, which follows on this one (a new
+        scene of the call), or None where the frame shows no face (the old session goes on:
+        its receiver keeps the old picture, as no face is tracked; try again on a later frame).
+        ``fit_now``: as :meth:`start`'s.
+        """
+        if isinstance(self.tracker, LandmarkTracker):
+            # It would look where the old face was: look over the whole frame.
+            self.tracker.reset()
+        old = self.session_id
+        self.call_id = self.call_id or old
+        self.session_id = secrets.randbelow(UINT32_MAX) + 1
+        snapshot = self.start(frame, call=self.call_id, fit_now=fit_now)
+        if snapshot is None:
+            self.session_id = old
+            return None
+        self._new_scene, self._left = False, None
+        self.scenes += 1
+        logger.info("another scene at frame %d: session %d of call %d", frame.index,
+                    self.session_id, self.call_id)  # fmt: skip
+        return snapshot
+
     def analyse(self, image: np.ndarray) -> tuple[Pose, np.ndarray] | None:
-        """Head pose and wire parameters of one frame, or None when no face is tracked."""
+        """Head pose and wire parameters of one frame, or None when no face is tracked (or
+        the face tracked is another face: :meth:`start_scene` starts its session)."""
         assert self.session is not None and self.wires is not None, "start() first"
+        if self._new_scene:
+            return None  # not this session's scene
         found = self.tracker.track(image)
         if found is None:
+            return None
+        box = face_box(found.points)
+        jumped = self.scene_cut is not None and self._face_box is not None
+        jumped = jumped and another_face(self._face_box, box)  # type: ignore[arg-type]
+        self._face_box = box
+        if jumped:
+            self._new_scene = True
             return None
         base = self.session.mesh.vertices
         if isinstance(found, MarkerFit):

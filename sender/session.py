@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from protocol.packets import (
     DeltaFrame,
     KeyFrame,
     KeyframeRequest,
+    Packet,
     ReceiverStats,
     RemPatch,
     Snapshot,
@@ -25,6 +27,7 @@ from protocol.transport import SenderEndpoint, TransportError
 from sender.capture import CapturedFrame, CaptureError
 from sender.encoder import FaceEncoder
 from sender.rem import BUDGET_KBPS as REM_BUDGET_KBPS
+from sender.snapshot_draft import draft
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +46,10 @@ class SenderReport:
     packets: int = 0  # frame packets handed to the link (no packet: nothing changed)
     patches: int = 0  # REM patches handed to the link
     keyframe_requests: int = 0
+    # Sessions started at a cut to another scene, and the capture time of each one's first
+    # frame (µs, this end's clock).
+    scenes: int = 0
+    scene_capture_us: list[int] = field(default_factory=list)
     busy_s: float = 0.0  # own processing time: track + encode + publish
     receiver_stats: dict[str, float] = field(default_factory=dict)  # the latest of each name
     stopped: bool = False  # ended by a stop request, not by the end of the input
@@ -74,15 +81,43 @@ def run_sender(
     True (looked at before each frame) the call ends the same way, with a Bye. ``on_stats``
     sees each ReceiverStats as it comes (a receiver says "ready" when it joins, "left" when
     it goes).
+
+    A frame of another scene (``FaceEncoder.scene_changed``: a cut) starts a session from it
+    (:class:`_SceneStart`), whose snapshot (and its draft) the endpoint serves from then on;
+    the frames that come while it is built are not sent (the receiver keeps its picture).
     """
     report = SenderReport()
     next_seq = 0
+    scene: _SceneStart | None = None
+    waiting: list[Packet] = []  # the back channel's packets while the encoder was busy
     for frame in frames:
         if stop():
             report.stopped = True
             break
-        _read_back_channel(endpoint, encoder, report, on_stats)
+        next_seq = frame.index + 1
+        if scene is not None and scene.snapshot is not None and not scene.served:
+            # Served at once, and said at once: the receiver shows the new scene's first
+            # frame while the encoder readies its fit.
+            endpoint.set_snapshot(scene.snapshot, draft(scene.snapshot))
+            endpoint.heartbeat()
+            scene.served = True
+            report.scenes += 1
+            report.scene_capture_us.append(scene.frame.capture_us)
+        if scene is not None and not scene.done():
+            # The encoder is busy: nothing to send. The endpoint answers snapshot requests;
+            # what is for the encoder waits.
+            waiting.extend(endpoint.poll(0))
+            _skip(endpoint, report)
+            continue
+        scene = None
+        _read_back_channel(endpoint, encoder, report, on_stats, waiting)
+        waiting = []
         start = time.perf_counter()
+        if encoder.scene_changed(frame):
+            scene = _SceneStart(encoder, frame)
+            report.busy_s += time.perf_counter() - start
+            _skip(endpoint, report)
+            continue
         packet = encoder.encode(frame)
         for patch in encoder.take_patches():
             if publish is None:
@@ -98,16 +133,53 @@ def run_sender(
             report.packets += 1
         report.busy_s += time.perf_counter() - start
         report.frames_in += 1
-        next_seq = frame.index + 1
         endpoint.heartbeat_if_idle()
         endpoint.end_frame()
         if encoder.rem is not None and report.frames_in % BUDGET_EVERY_FRAMES == 0:
             # The patches take what the link's budget leaves, never more than their own.
             left_kbps = endpoint.patch_budget_bps() / 1000.0
             encoder.rem.set_budget(min(REM_BUDGET_KBPS, left_kbps))
+    if scene is not None:
+        scene.done(wait=True)  # the encoder is the caller's again
     endpoint.publish(Bye(seq=next_seq))
     _read_back_channel(endpoint, encoder, report, on_stats)
     return report
+
+
+class _SceneStart:
+    """A new scene's session, started from ``frame`` on a thread of its own: the pseudo-inverse
+    of its wires takes 50 ms on a quiet machine and seconds when the other core is busy (numpy
+    leaves the GIL), long enough for a receiver to take the sender for gone. Meanwhile the
+    call's loop leaves the encoder alone (the back channel's requests wait for it), keeps the
+    link alive, and serves the snapshot as soon as it is made, before the fit is ready."""
+
+    def __init__(self, encoder: FaceEncoder, frame: CapturedFrame) -> None:
+        self.frame = frame
+        #: The new session's snapshot once made (before the encoder's fit is ready).
+        self.snapshot: Snapshot | None = None
+        self.served = False
+        self._thread = threading.Thread(
+            target=self._run, args=(encoder,), name="scene start", daemon=True
+        )
+        self._thread.start()
+
+    def _run(self, encoder: FaceEncoder) -> None:
+        snapshot = encoder.start_scene(self.frame, fit_now=False)
+        self.snapshot = snapshot
+        if snapshot is not None:
+            encoder.prepare_fit()
+
+    def done(self, wait: bool = False) -> bool:
+        if wait:
+            self._thread.join()
+        return not self._thread.is_alive()
+
+
+def _skip(endpoint: SenderEndpoint, report: SenderReport) -> None:
+    """A frame not sent: the link is kept alive."""
+    report.frames_in += 1
+    endpoint.heartbeat_if_idle()
+    endpoint.end_frame()
 
 
 def wait_until_ready(
@@ -181,8 +253,10 @@ def _read_back_channel(
     encoder: FaceEncoder,
     report: SenderReport,
     on_stats: Callable[[dict[str, float]], None] | None,
+    earlier: Iterable[Packet] = (),
 ) -> None:
-    for packet in endpoint.poll(0):
+    """Take the back channel's packets (``earlier``: those read while the encoder was busy)."""
+    for packet in itertools.chain(earlier, endpoint.poll(0)):
         if isinstance(packet, KeyframeRequest):
             logger.debug("keyframe requested after seq %d", packet.seq)
             encoder.request_keyframe()

@@ -1,0 +1,89 @@
+"""A call across cuts: clips one after another, each a new scene.
+
+Usage:
+  PYOPENGL_PLATFORM=egl python benchmarks/bench_scene_cut.py --input CLIP --input CLIP ...
+      [--seconds S] [--output DIR]
+
+Writes the first S seconds (default 4) of each clip one after another, at the first clip's
+size and frame rate, runs ``facewire demo`` on it (two processes, ZeroMQ on loopback, paced
+at the frame rate), and prints per cut: seconds from the capture of the new scene's first
+frame to its first picture on the receiver's screen (the demo's stats), and the whole frame's
+luma SSIM (facewire/quality.py) from 1 s after the cut to the next cut.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+from facewire.quality import read_frames, ssim  # noqa: E402
+
+
+def splice(clips: list[Path], seconds: float, out: Path) -> tuple[list[int], float]:
+    """``clips`` one after another in ``out``; the first frame of each and the frame rate."""
+    writer, starts, total, fps, size = None, [], 0, 30.0, (0, 0)
+    for clip in clips:
+        capture = cv2.VideoCapture(str(clip))
+        if writer is None:
+            fps = capture.get(cv2.CAP_PROP_FPS) or 30.0
+            size = (
+                int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+            )
+            writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+        starts.append(total)
+        for _ in range(round(seconds * fps)):
+            ok, image = capture.read()
+            if not ok:
+                break
+            if image.shape[1::-1] != size:
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            writer.write(image)
+            total += 1
+        capture.release()
+    assert writer is not None
+    writer.release()
+    return starts, fps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--input", type=Path, action="append", required=True)
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--output", type=Path, help="folder for the clip, output and stats")
+    args = parser.parse_args()
+    folder = args.output or Path(tempfile.mkdtemp(prefix="scene_cut_"))
+    folder.mkdir(parents=True, exist_ok=True)
+    clip, out, stats_file = folder / "cuts.mp4", folder / "out.mp4", folder / "stats.json"
+    starts, fps = splice(args.input, args.seconds, clip)
+    command = [sys.executable, "-m", "facewire", "demo", "--input", str(clip)]
+    command += ["--output", str(out), "--stats", str(stats_file), "--no-sound"]
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    stats = json.loads(stats_file.read_text())
+    inputs, outputs = list(read_frames(clip)), list(read_frames(out))
+    ends = [*starts[1:], len(inputs)]
+    print(f"{clip}: {len(inputs)} frames, cuts at {starts[1:]}; {stats['scenes']} scenes seen")
+    print("| cut at frame | first picture after, s | frame SSIM from 1 s after the cut |")
+    print("|---|---|---|")
+    firsts = stats["scene_first_s"]
+    for k, (start, end) in enumerate(zip(starts[1:], ends[1:], strict=True)):
+        frames = range(start + round(fps), min(end, len(outputs)))
+        score = np.mean([ssim(inputs[i], outputs[i]) for i in frames])
+        first = f"{firsts[k]:.2f}" if k < len(firsts) else "none"
+        print(f"| {start} | {first} | {score:.3f} |")
+    kbps = stats["kbps"]
+    print(f"kbit/s: snapshot {kbps['snapshot']:.1f}, total {kbps['total']:.1f}")
+
+
+if __name__ == "__main__":
+    main()

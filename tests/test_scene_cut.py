@@ -1,0 +1,136 @@
+"""A cut to another scene: the sender sees it and starts a session from it; the receiver goes on
+with that session in the same call and never draws the old face over the new scene."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from facewire.cli import main
+from facewire.loopback import Loopback
+from sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from sender.encoder import FaceEncoder
+from sender.scene_cut import SceneCut, another_face
+
+FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
+BEFORE, AFTER = 30, 150  # frames of the bundled clip, then of the other scene (5 s: its session
+# takes a second to start on a busy machine, seconds on a very busy one)
+
+
+def bundled(count: int) -> list[np.ndarray]:
+    with VideoSource(demo_clip_path()) as video:
+        return [f.image for f in video.frames(limit=count)]
+
+
+def other_scene(count: int, size: tuple[int, int] = (640, 480)) -> list[np.ndarray]:
+    """Another shot: a photographed astronaut on a flat wall, the camera's noise on it."""
+    face = cv2.imread(str(FIXTURE))
+    width, height = size
+    canvas = np.full((height, width, 3), (70, 120, 150), np.uint8)
+    m = cv2.getRotationMatrix2D((210, 210), 0.0, height / 420 * 0.9)
+    m[:, 2] += (width / 2 - 210, height / 2 - 210)
+    cv2.warpAffine(face, m, size, dst=canvas, borderMode=cv2.BORDER_TRANSPARENT)
+    rng = np.random.default_rng(5)
+    noisy = [canvas.astype(np.int16) + rng.integers(-2, 3, canvas.shape) for _ in range(count)]
+    return [np.clip(f, 0, 255).astype(np.uint8) for f in noisy]
+
+
+def spliced() -> list[np.ndarray]:
+    return bundled(BEFORE) + other_scene(AFTER)
+
+
+def test_a_talking_head_is_one_scene_and_a_splice_is_a_cut() -> None:
+    frames = spliced()
+    scene = SceneCut()
+    cuts = [i for i, image in enumerate(frames) if scene.changed(image)]
+    assert cuts == [BEFORE]
+
+
+def test_another_face_is_one_that_jumps_or_resizes_in_a_frame() -> None:
+    face = (100.0, 100.0, 50.0)
+    assert not another_face(face, (120.0, 95.0, 52.0))  # a head moving fast
+    assert another_face(face, (180.0, 100.0, 50.0))  # a face width and more away
+    assert another_face(face, (100.0, 100.0, 90.0))  # nearly twice as wide
+
+
+def _call(frames: list[np.ndarray], scenes: bool) -> tuple[list[np.ndarray], int]:
+    height, width = frames[0].shape[:2]
+    encoder = FaceEncoder(width, height, 30.0, scenes=scenes)
+    pictures = []
+    with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as both:
+        for i, image in enumerate(frames):
+            both.step(CapturedFrame(i, image, i * 33_333))
+            pictures.append(both.picture())
+        return pictures, both.scenes
+
+
+def _off(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a.astype(int) - b.astype(int)).mean())
+
+
+def test_after_a_cut_the_receiver_draws_the_new_scene() -> None:
+    frames = spliced()
+    pictures, scenes = _call(frames, scenes=True)
+    still, floated = _call(frames, scenes=False)
+    assert scenes == 1
+    # The new scene from its first frame on: the snapshot is made of it.
+    for i in (BEFORE, BEFORE + AFTER // 2, len(frames) - 1):
+        assert _off(pictures[i], frames[i]) < 12.0, i
+    # Without it, the old scene stays, with the new face pasted over it.
+    assert _off(still[-1], frames[-1]) > 3 * _off(pictures[-1], frames[-1])
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[np.ndarray], list, dict]:
+    """``facewire demo`` (two processes, ZeroMQ on loopback, EGL) on the spliced clip."""
+    out = tmp_path_factory.mktemp("scene")
+    frames = spliced()
+    clip = out / "cut.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (640, 480))
+    for image in frames:
+        writer.write(image)
+    writer.release()
+    args = ["demo", "--input", str(clip), "--output", str(out / "out.mp4"), "--no-sound"]
+    assert main([*args, "--stats", str(out / "stats.json")]) == 0
+    capture, rebuilt = cv2.VideoCapture(str(out / "out.mp4")), []
+    while (read := capture.read())[0]:
+        rebuilt.append(read[1])
+    inputs = []
+    capture = cv2.VideoCapture(str(clip))
+    while (read := capture.read())[0]:
+        inputs.append(read[1])
+    return inputs, rebuilt, json.loads((out / "stats.json").read_text())
+
+
+def test_a_call_goes_on_across_a_cut_in_a_new_session(demo: tuple) -> None:
+    inputs, rebuilt, stats = demo
+    assert stats["ended_by"] == "bye" and stats["malformed"] == 0
+    assert stats["scenes"] == 1 and len(stats["scene_first_s"]) == 1
+    assert stats["frames_out"] == stats["frames_in"] == len(inputs) == len(rebuilt)
+    assert _off(rebuilt[-1], inputs[-1]) < 12.0
+
+
+def test_until_the_new_scene_comes_the_old_picture_stays(demo: tuple) -> None:
+    """Every picture after the cut is the old scene held, or the new scene: nowhere the old
+    scene with the new face on it (it would be closer to neither)."""
+    inputs, rebuilt, _ = demo
+    old = rebuilt[BEFORE - 1]
+    new = [_off(rebuilt[i], inputs[i]) < 12.0 for i in range(BEFORE, len(inputs))]
+    held = [_off(rebuilt[i], old) < 2.0 for i in range(BEFORE, len(inputs))]
+    assert all(a or b for a, b in zip(new, held, strict=True))
+    first = new.index(True)
+    assert all(new[first:])
+
+
+def test_a_black_frame_is_no_new_scene() -> None:
+    """A frame that shows nothing (a flash, a hand over the lens) and then the same scene
+    again: no session is started, the call goes on with its own."""
+    frames = bundled(40)
+    frames[20] = np.zeros_like(frames[20])
+    pictures, scenes = _call(frames, scenes=True)
+    assert scenes == 0
+    assert _off(pictures[-1], frames[-1]) < 12.0
