@@ -33,10 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_rem import REGIONS, call, scores  # noqa: E402
 
 from facewire.loopback import Loopback  # noqa: E402
-from models.face_channels import WIRE, pose_from_channels  # noqa: E402
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
-from sender.landmarks import LandmarkTracker  # noqa: E402
+from facewire.models.face_channels import WIRE, pose_from_channels  # noqa: E402
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
+from facewire.sender.landmarks import LandmarkTracker  # noqa: E402
 
 EDGE = "+ the face's edge"
 STEPS = ("landmarks", "wires", "wire basis", "smoothed", "the call", EDGE)

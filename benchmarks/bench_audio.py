@@ -27,10 +27,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from protocol.constants import AUDIO_RATE  # noqa: E402
-from protocol.packets import AudioFrame, KeyFrame  # noqa: E402
-from receiver.audio import AudioPlayout, NullSink, read_audio  # noqa: E402
-from sender.audio import AudioSender, AudioSettings, demo_speech_path, open_track  # noqa: E402
+from facewire.protocol.constants import AUDIO_RATE  # noqa: E402
+from facewire.protocol.packets import AudioFrame, KeyFrame  # noqa: E402
+from facewire.receiver.audio import AudioPlayout, NullSink, read_audio  # noqa: E402
+from facewire.sender.audio import AudioSender, AudioSettings, demo_speech_path, open_track  # noqa: E402
 
 RATE = 16_000
 TALK = (300, 420)  # 20 ms steps of the clip's talking (6.0 - 8.4 s)

@@ -22,10 +22,10 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from protocol.packets import decode  # noqa: E402
-from receiver.decoder import FaceDecoder  # noqa: E402
-from sender.capture import VideoSource, demo_clip_path  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
+from facewire.protocol.packets import decode  # noqa: E402
+from facewire.receiver.decoder import FaceDecoder  # noqa: E402
+from facewire.sender.capture import VideoSource, demo_clip_path  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
 
 
 def _ms(samples: list[float]) -> str:

@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the ca
 from cli_call import Facewire, free_ports, run_facewire  # noqa: E402
 from netns_pair import ADDRESS_B, Netem, TwoHosts, unavailable  # noqa: E402
 
-from protocol.constants import LATE_FRAME_MS  # noqa: E402
+from facewire.protocol.constants import LATE_FRAME_MS  # noqa: E402
 
 FPS = 30.0  # the bundled clip's
 

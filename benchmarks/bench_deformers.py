@@ -14,11 +14,11 @@ import time
 
 import numpy as np
 
-from models.blending import blend
-from models.mesh import FaceMesh, load_canonical
-from models.rig import load_rig
-from models.subdivision import loop_subdivide
-from models.wires import WireDeformer
+from facewire.models.blending import blend
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.rig import load_rig
+from facewire.models.subdivision import loop_subdivide
+from facewire.models.wires import WireDeformer
 
 
 def _median_ms(fn, repeats: int) -> float:

@@ -18,8 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sender.capture import VideoSource, demo_clip_path
-from sender.landmarks import LandmarkTracker
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.landmarks import LandmarkTracker
 
 LID_MARKERS = ("upper_lid_right", "lower_lid_right", "upper_lid_left", "lower_lid_left")
 

@@ -12,22 +12,22 @@ seed and i.
 Decoder (``--count`` cases), seeds: the golden fixtures, tests/fixtures/packets/*.bin. Each
 input goes where a receiver sends it:
 
-- ``protocol.packets.decode``, whose documented error is PacketError; a packet it returns must
-  come back from ``decode(bytes(p))`` equal;
-- a KeyFrame or DeltaFrame to a ``protocol.channels.ChannelDecoder`` of the golden snapshot's
-  channel table (a delta right after a keyframe whose counter precedes its own, so its chain
-  is intact): PacketError or ChainBroken;
+- ``facewire.protocol.packets.decode``, whose documented error is PacketError; a packet it
+  returns must come back from ``decode(bytes(p))`` equal;
+- a KeyFrame or DeltaFrame to a ``facewire.protocol.channels.ChannelDecoder`` of the golden
+  snapshot's channel table (a delta right after a keyframe whose counter precedes its own,
+  so its chain is intact): PacketError or ChainBroken;
 - a Snapshot's texture and background, and a RemPatch's image, to
-  ``protocol.images.decode_image`` (ImageError); a Snapshot also makes a ChannelDecoder of
+  ``facewire.protocol.images.decode_image`` (ImageError); a Snapshot also makes a ChannelDecoder of
   its own channel table, which decodes the golden frames.
 
 Live (``--live N`` cases), seeds: a real session (the snapshot and packets of the bundled
 clip's first 60 frames, through the sender's FaceEncoder) and keyframes of it with one value
 at a boundary (+-2^24, +-2^17, +-2^10). A thread plays the sender on raw loopback ZeroMQ
-sockets: it publishes each case to a real ``protocol.transport.ReceiverEndpoint`` (plain),
+sockets: it publishes each case to a real ``facewire.protocol.transport.ReceiverEndpoint`` (plain),
 then a marker heartbeat, and answers probes and snapshot requests; a decodable delta is
 preceded by the session's keyframe with the counter before its own. The receiver side does
-what ``receiver.session`` does: frame packets go through the receive loop's ``_decode`` to
+what ``facewire.receiver.session`` does: frame packets go through the receive loop's ``_decode`` to
 the session's ``FaceDecoder``, every frame that decodes is rebuilt and rendered
 (``FaceDecoder.reconstruct``), and RejoinNeeded is answered by ``fetch_snapshot``. Each case's
 outcome: what ``recv`` returned and what became of it, or what the endpoint counted.
@@ -63,9 +63,9 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from protocol.channels import ChainBroken, ChannelDecoder, ChannelEncoder, ChannelSpec  # noqa: E402
-from protocol.images import ImageError, decode_image  # noqa: E402
-from protocol.packets import (  # noqa: E402
+from facewire.protocol.channels import ChainBroken, ChannelDecoder, ChannelEncoder, ChannelSpec  # noqa: E402
+from facewire.protocol.images import ImageError, decode_image  # noqa: E402
+from facewire.protocol.packets import (  # noqa: E402
     DeltaFrame,
     Heartbeat,
     KeyFrame,
@@ -367,9 +367,9 @@ def replay(case: int, seed: int, fixtures: Seeds) -> int:
 
 def real_session(frames: int) -> tuple[Snapshot, list[Packet]]:
     """The snapshot and the packets of the bundled clip's first ``frames`` frames."""
-    from protocol.packets import Bye
-    from sender.capture import VideoSource, demo_clip_path
-    from sender.encoder import FaceEncoder
+    from facewire.protocol.packets import Bye
+    from facewire.sender.capture import VideoSource, demo_clip_path
+    from facewire.sender.encoder import FaceEncoder
 
     snapshot = None
     packets: list[Packet] = []
@@ -474,9 +474,9 @@ class FakeSender(threading.Thread):
 
 def run_live(count: int, seed: int) -> bool:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    from protocol.transport import ReceiverEndpoint, RejoinNeeded
-    from receiver.decoder import FaceDecoder
-    from receiver.session import ReceiverReport, _decode
+    from facewire.protocol.transport import ReceiverEndpoint, RejoinNeeded
+    from facewire.receiver.decoder import FaceDecoder
+    from facewire.receiver.session import ReceiverReport, _decode
 
     t0 = time.perf_counter()
     snapshot, packets = real_session(60)

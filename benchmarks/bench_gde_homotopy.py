@@ -14,11 +14,11 @@ import time
 
 import numpy as np
 
-from models.gde import GdeDef, GdeSet, rig_mouth_seam
-from models.homotopy import MouthRig
-from models.mesh import FaceMesh, load_canonical
-from models.rig import load_rig
-from models.subdivision import loop_subdivide
+from facewire.models.gde import GdeDef, GdeSet, rig_mouth_seam
+from facewire.models.homotopy import MouthRig
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.rig import load_rig
+from facewire.models.subdivision import loop_subdivide
 
 
 def per_frame_ms(fn, frames: int) -> float:

@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from models.face_channels import DEFAULT_ERROR_PX, LIPS, WIRE, pose_from_channels
-from protocol.channels import ChannelDecoder, ChannelSpec
-from protocol.packets import KeyFrame, decode
-from protocol.quant import dequantise
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.rate_cap import GEOMETRY_KBPS
+from facewire.models.face_channels import DEFAULT_ERROR_PX, LIPS, WIRE, pose_from_channels
+from facewire.protocol.channels import ChannelDecoder, ChannelSpec
+from facewire.protocol.packets import KeyFrame, decode
+from facewire.protocol.quant import dequantise
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.rate_cap import GEOMETRY_KBPS
 
 ZMTP_BYTES = 2
 TCP_IP_BYTES = 52

@@ -25,8 +25,8 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from facewire.quality import score_videos  # noqa: E402
-from sender.capture import VideoSource  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
+from facewire.sender.capture import VideoSource  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
 
 YAW_BINS = (0.0, 10.0, 20.0, 30.0, 90.0)
 MOVE_BINS = (0.0, 0.1, 0.2, 1 / 3, 2.0)

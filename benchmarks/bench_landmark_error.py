@@ -25,8 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.sender.landmarks import LandmarkTracker
 from facewire.track import track_still
-from sender.landmarks import LandmarkTracker
 
 # iBUG 68-point index -> MediaPipe face mesh vertex, for the inner face (17-67). iBUG's
 # "left"/"right" are the image's; MediaPipe's 33/133 are the image-left eye's outer/inner

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the ca
 
 from cli_call import Facewire, free_ports  # noqa: E402
 
-from sender.capture import demo_clip_path  # noqa: E402
+from facewire.sender.capture import demo_clip_path  # noqa: E402
 
 
 def make_clip(path: Path, size: tuple[int, int], frames: int) -> None:

@@ -36,12 +36,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facewire.loopback import Loopback  # noqa: E402
-from models.blending import blend  # noqa: E402
-from models.homotopy import MouthRig  # noqa: E402
-from models.pose import Pose  # noqa: E402
-from receiver.decoder import FaceDecoder  # noqa: E402
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
+from facewire.models.blending import blend  # noqa: E402
+from facewire.models.homotopy import MouthRig  # noqa: E402
+from facewire.models.pose import Pose  # noqa: E402
+from facewire.receiver.decoder import FaceDecoder  # noqa: E402
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
 
 #: Per-contour blending parameters tried (outer, ring, ring, inner).
 CONTOUR_N = (

@@ -37,12 +37,12 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from protocol.packets import decode  # noqa: E402
-from receiver.decoder import FaceDecoder  # noqa: E402
-from receiver.live_view import LiveView  # noqa: E402
-from receiver.session import ReceiverReport, RenderedFrame  # noqa: E402
-from sender.capture import VideoSource, demo_clip_path  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
+from facewire.protocol.packets import decode  # noqa: E402
+from facewire.receiver.decoder import FaceDecoder  # noqa: E402
+from facewire.receiver.live_view import LiveView  # noqa: E402
+from facewire.receiver.session import ReceiverReport, RenderedFrame  # noqa: E402
+from facewire.sender.capture import VideoSource, demo_clip_path  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
 
 CTX = mp.get_context("spawn")
 

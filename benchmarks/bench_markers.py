@@ -36,16 +36,16 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from facewire.loopback import Loopback  # noqa: E402
-from models.mesh import load_canonical  # noqa: E402
-from models.pose import Pose, estimate_pose  # noqa: E402
-from models.raycast import RayCaster, orthographic_rays  # noqa: E402
-from models.rig import load_rig  # noqa: E402
-from models.wires import WireDeformer  # noqa: E402
-from protocol.packets import RemPatch  # noqa: E402
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
-from sender.lift import MarkerFaceTracker, MarkerLifter  # noqa: E402
-from sender.markers import SEEN, Markers, MarkerTracker  # noqa: E402
+from facewire.models.mesh import load_canonical  # noqa: E402
+from facewire.models.pose import Pose, estimate_pose  # noqa: E402
+from facewire.models.raycast import RayCaster, orthographic_rays  # noqa: E402
+from facewire.models.rig import load_rig  # noqa: E402
+from facewire.models.wires import WireDeformer  # noqa: E402
+from facewire.protocol.packets import RemPatch  # noqa: E402
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
+from facewire.sender.lift import MarkerFaceTracker, MarkerLifter  # noqa: E402
+from facewire.sender.markers import SEEN, Markers, MarkerTracker  # noqa: E402
 
 GROUP = (
     "brow_inner_right brow_mid_right brow_outer_right upper_lid_right lower_lid_right "
@@ -286,7 +286,7 @@ def stickers_on(path: str, limit: int) -> None:
     import tempfile
     from pathlib import Path
 
-    from sender.landmarks import LandmarkTracker
+    from facewire.sender.landmarks import LandmarkTracker
 
     rig = load_rig()
     canonical = load_canonical()

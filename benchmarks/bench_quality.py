@@ -38,9 +38,10 @@ from typing import Any
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from facewire.quality import REGIONS, QualityReport, score_videos  # noqa: E402
-from sender.capture import demo_clip_path  # noqa: E402
+from facewire.sender.capture import demo_clip_path  # noqa: E402
 
-PACKAGES = ("facewire", "sender", "receiver", "protocol", "models")
+#: The call's parts: inside facewire since issue 27, top-level packages in older checkouts.
+PARTS = ("sender", "receiver", "protocol", "models")
 
 
 def _env(code: Path | None) -> dict[str, str]:
@@ -52,8 +53,16 @@ def _env(code: Path | None) -> dict[str, str]:
 
 def check_imports(code: Path) -> None:
     """Fail unless the call's packages come from ``code`` (not this checkout)."""
-    names = ", ".join(PACKAGES)
-    probe = f"import {names}\nfor m in ({names}): print(m.__file__)"
+    probe = (
+        "import importlib, facewire\n"
+        "print(facewire.__file__)\n"
+        f"for part in {PARTS!r}:\n"
+        "    try:\n"
+        "        m = importlib.import_module('facewire.' + part)\n"
+        "    except ImportError:\n"
+        "        m = importlib.import_module(part)\n"
+        "    print(m.__file__)\n"
+    )
     done = subprocess.run(
         [sys.executable, "-c", probe],
         cwd=code,
@@ -68,7 +77,7 @@ def check_imports(code: Path) -> None:
     files = done.stdout.split()
     root = code.resolve()
     stray = [f for f in files if root not in Path(f).resolve().parents]
-    if stray or len(files) != len(PACKAGES):
+    if stray or len(files) != 1 + len(PARTS):
         raise SystemExit(f"--code {code}: packages imported from elsewhere: {stray or files}")
 
 

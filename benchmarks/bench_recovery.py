@@ -37,7 +37,7 @@ from call_helpers import (  # noqa: E402
     wait_ready,
 )
 
-from protocol.transport import SenderEndpoint  # noqa: E402
+from facewire.protocol.transport import SenderEndpoint  # noqa: E402
 
 FRAME_MS = 1000 / 30
 BURSTS = [range(50, 80), range(150, 180)]  # frames lost: two seconds of total loss

@@ -45,13 +45,13 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from facewire.loopback import Loopback  # noqa: E402
+from facewire.models.rig import load_rig  # noqa: E402
+from facewire.protocol.packets import RemPatch  # noqa: E402
 from facewire.quality import face_polygon, frame_scores, polygon_mask  # noqa: E402
-from models.rig import load_rig  # noqa: E402
-from protocol.packets import RemPatch  # noqa: E402
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
-from sender.encoder import FaceEncoder  # noqa: E402
-from sender.landmarks import LandmarkTracker  # noqa: E402
-from sender.rate_cap import GEOMETRY_KBPS  # noqa: E402
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path  # noqa: E402
+from facewire.sender.encoder import FaceEncoder  # noqa: E402
+from facewire.sender.landmarks import LandmarkTracker  # noqa: E402
+from facewire.sender.rate_cap import GEOMETRY_KBPS  # noqa: E402
 
 RIGHT_EYE = (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246)
 LEFT_EYE = (263, 249, 390, 373, 374, 380, 381, 382, 362, 398, 384, 385, 386, 387, 388, 466)

@@ -17,15 +17,15 @@ import time
 import numpy as np
 import pyrender
 
-from models.mesh import FaceMesh, load_canonical
-from receiver.render import FaceRenderer
-from sender.texture import UvRasteriser, make_background
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.receiver.render import FaceRenderer
+from facewire.sender.texture import UvRasteriser, make_background
 
 W, H = 640, 480
 
 
 def subdivided(mesh: FaceMesh) -> FaceMesh:
-    from models.subdivision import loop_subdivide
+    from facewire.models.subdivision import loop_subdivide
 
     return loop_subdivide(mesh, 2)[0]
 

@@ -24,8 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from facewire.protocol.sframe import RoomKey  # noqa: E402
 from facewire.relay import Relay, RelayConfig, free_port  # noqa: E402
-from protocol.sframe import RoomKey  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 

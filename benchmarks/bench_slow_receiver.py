@@ -22,22 +22,22 @@ import zmq
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from protocol.packets import Heartbeat, KeyFrame, Snapshot  # noqa: E402
-from protocol.transport import SenderEndpoint  # noqa: E402
+from facewire.protocol.packets import Heartbeat, KeyFrame, Snapshot  # noqa: E402
+from facewire.protocol.transport import SenderEndpoint  # noqa: E402
 
 MB = 1024 * 1024
 #: SOI, a 16 x 16 frame header, EOI: a texture whose header packets accept (never decoded here).
 JPEG_HEADER = bytes.fromhex("ffd8ffc0000b080010001001011100ffd9")
 STALLED_RECEIVER = """
 import sys
-from protocol.transport import ReceiverEndpoint
+from facewire.protocol.transport import ReceiverEndpoint
 with ReceiverEndpoint("127.0.0.1", int(sys.argv[1]), int(sys.argv[2]), plain=True) as r:
     r.fetch_snapshot(10000)
     sys.stdin.read()
 """
 SNAPSHOT_FLOOD = """
 import sys, zmq
-from protocol.packets import SnapshotRequest
+from facewire.protocol.packets import SnapshotRequest
 dealer = zmq.Context().socket(zmq.DEALER)
 dealer.linger = 0
 dealer.connect(f"tcp://127.0.0.1:{sys.argv[1]}")

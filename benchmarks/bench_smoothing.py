@@ -4,7 +4,7 @@ real footage (against the raw tracker).
 Usage: python benchmarks/bench_smoothing.py [--footage DIR] [--grid]
 
 Each clip is tracked once (raw landmarks; the tracker's crops never depend on the
-smoother), then smoothed offline with ``sender.smoothing.LandmarkSmoother``, which is what
+smoother), then smoothed offline with ``facewire.sender.smoothing.LandmarkSmoother``, which is what
 ``LandmarkTracker(smoother=...)`` returns frame by frame.
 
 Bundled clip (rendered, every rig marker's true position known per frame; visible markers):
@@ -31,9 +31,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sender.capture import VideoSource, demo_clip_path
-from sender.landmarks import LandmarkTracker
-from sender.smoothing import BETA, D_CUTOFF_HZ, MIN_CUTOFF_HZ, LandmarkSmoother
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.landmarks import LandmarkTracker
+from facewire.sender.smoothing import BETA, D_CUTOFF_HZ, MIN_CUTOFF_HZ, LandmarkSmoother
 
 TRUTH = Path(__file__).resolve().parent.parent / "sender" / "data" / "demo_clip_truth.npz"
 REAL_CLIPS = ("akiyo_cif", "carphone_qcif", "foreman_cif_first180", "mother_daughter_cif")

@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from protocol.images import image_size
-from sender.capture import VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
+from facewire.protocol.images import image_size
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
 
 
 def main() -> int:

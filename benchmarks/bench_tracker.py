@@ -23,10 +23,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from models.mesh import load_canonical
-from models.pose import estimate_pose
-from sender.detector import FaceDetector, tile_grid
-from sender.landmarks import OUTPUT_LAYERS, LandmarkTracker
+from facewire.models.mesh import load_canonical
+from facewire.models.pose import estimate_pose
+from facewire.sender.detector import FaceDetector, tile_grid
+from facewire.sender.landmarks import OUTPUT_LAYERS, LandmarkTracker
 
 FIXTURE = Path(__file__).resolve().parent.parent / "tests" / "fixtures" / "astronaut_face.jpg"
 

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from facewire.models.gde import GdeSet
+from facewire.models.mesh import load_canonical, load_obj, save_obj
+from facewire.models.rig import load_rig
 from facewire.wirestool import apply, extract
-from models.gde import GdeSet
-from models.mesh import load_canonical, load_obj, save_obj
-from models.rig import load_rig
 
 
 def main() -> None:

@@ -143,7 +143,7 @@ def rungs(width: int, height: int, ladder: Sequence[float]) -> list[tuple[float,
 
 
 def run(args: argparse.Namespace) -> int:
-    from sender.capture import VideoSource, demo_clip_path
+    from facewire.sender.capture import VideoSource, demo_clip_path
 
     rates = parse_rates(args.rates)
     specs = parse_codecs(args.codecs)
@@ -233,7 +233,7 @@ def _frames(clip: Path, count: int | None) -> Iterator[np.ndarray]:
 
 def _track(clip: Path, limit: int | None) -> list[np.ndarray | None]:
     """The input's landmarks ((468, 3) image pixels, None without a face), frame by frame."""
-    from sender.landmarks import LandmarkTracker
+    from facewire.sender.landmarks import LandmarkTracker
 
     tracker = LandmarkTracker()
     out: list[np.ndarray | None] = []
@@ -379,7 +379,7 @@ def recording_ceiling(
     clip: Path, count: int, fps: float, landmarks: list[np.ndarray | None], folder: Path
 ) -> QualityReport:
     """The input itself through the receiver's MP4 recorder: the best our scores can be."""
-    from receiver.recorder import Mp4Recorder
+    from facewire.receiver.recorder import Mp4Recorder
 
     path = folder / "input-recorded.mp4"
     frames = _frames(clip, count)

@@ -36,9 +36,9 @@ from facewire.peer import (
     receiver_keys,
     sender_keys,
 )
+from facewire.protocol.constants import LATE_FRAMES
+from facewire.protocol.transport import TransportError
 from facewire.watch import Watchers, add_watch_arguments, check_watch_arguments, wants_watching
-from protocol.constants import LATE_FRAMES
-from protocol.transport import TransportError
 
 logger = logging.getLogger(__name__)
 
@@ -154,7 +154,7 @@ def _number(text: str) -> float:
 
 
 def _sound_kbps(text: str) -> float:
-    from sender.audio import MAX_BITRATE, MIN_BITRATE
+    from facewire.sender.audio import MAX_BITRATE, MIN_BITRATE
 
     kbps = _number(text)
     if not MIN_BITRATE <= kbps * 1000 <= MAX_BITRATE:
@@ -173,7 +173,7 @@ def _geometry_kbps(text: str) -> float:
 
 def add_geometry_arguments(p: argparse.ArgumentParser) -> None:
     """The sending end's cap on the face's parameter packets (sender/rate_cap.py)."""
-    from sender.rate_cap import GEOMETRY_KBPS
+    from facewire.sender.rate_cap import GEOMETRY_KBPS
 
     p.add_argument(
         "--geometry-kbps",
@@ -186,7 +186,7 @@ def add_geometry_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _max_kbps(text: str) -> float:
-    from protocol.congestion import MIN_RATE_BPS
+    from facewire.protocol.congestion import MIN_RATE_BPS
 
     value = _number(text)
     if not MIN_RATE_BPS / 1000 <= value < float("inf"):
@@ -199,7 +199,7 @@ def _max_kbps(text: str) -> float:
 
 def add_budget_argument(p: argparse.ArgumentParser) -> None:
     """The sending end's budget on the wire (protocol/media_path.py)."""
-    from protocol.media_path import DEFAULT_BUDGET_BPS
+    from facewire.protocol.media_path import DEFAULT_BUDGET_BPS
 
     p.add_argument(
         "--max-kbps",
@@ -240,7 +240,7 @@ def sound_as_asked(
     """The AudioSender for ``source`` at the options' bit rate, in Opus packets as long as the
     call's on-the-wire budget asks; None with --no-sound, or when there is no sound to send
     (said in one line to ``notify``)."""
-    from sender.audio import AudioSettings, frame_ms_for, sound_for
+    from facewire.sender.audio import AudioSettings, frame_ms_for, sound_for
 
     if args.no_sound:
         return None
@@ -274,8 +274,8 @@ class _Source:
     """The frames to send: camera or file (looped if asked), scaled to fit, numbered on."""
 
     def __init__(self, args: argparse.Namespace) -> None:
-        from sender.capture import VideoSource, demo_clip_path
-        from sender.session import capped_size
+        from facewire.sender.capture import VideoSource, demo_clip_path
+        from facewire.sender.session import capped_size
 
         if args.frames is not None and args.frames < 1:
             raise ValueError(f"--frames must be at least 1, got {args.frames}")
@@ -295,12 +295,12 @@ class _Source:
         return "" if native == self.size else f", scaled from {native[0]}x{native[1]}"
 
     def frames(self) -> Iterator[Any]:
-        from sender.session import scaled
+        from facewire.sender.session import scaled
 
         return itertools.islice(scaled(self._numbered(), self.size), self.limit)
 
     def _numbered(self) -> Iterator[Any]:
-        from sender.capture import VideoSource
+        from facewire.sender.capture import VideoSource
 
         offset = 0
         while True:
@@ -330,7 +330,7 @@ def _paused_while_alone(
 ) -> Iterator[Any]:
     """``frames``, waiting for a new receiver whenever the last one has left (``wait``), or
     ending there."""
-    from sender.session import wait_until_ready
+    from facewire.sender.session import wait_until_ready
 
     for frame in frames:
         if presence.active == 0:
@@ -356,11 +356,11 @@ def send(
     ``offset``: ports used from the address's PORT on (a two-way call's second direction).
     When its receiver has left, it waits for another (``wait_when_alone``), or ends.
     """
-    from protocol.transport import SenderEndpoint
-    from sender.audio import with_sound
-    from sender.encoder import FaceEncoder
-    from sender.session import restamped, run_sender, start_session, wait_until_ready
-    from sender.snapshot_draft import draft
+    from facewire.protocol.transport import SenderEndpoint
+    from facewire.sender.audio import with_sound
+    from facewire.sender.encoder import FaceEncoder
+    from facewire.sender.session import restamped, run_sender, start_session, wait_until_ready
+    from facewire.sender.snapshot_draft import draft
 
     source = _Source(args)
     try:
@@ -492,8 +492,8 @@ def receive(
     ``sink`` gets every rendered picture (receiver.session.FrameSink): the seam for a live
     view. Raises TransportError when ``args.join_timeout`` passes before any sender comes.
     """
-    from receiver.playout import PlayoutSettings
-    from receiver.session import run_receiver
+    from facewire.receiver.playout import PlayoutSettings
+    from facewire.receiver.session import run_receiver
 
     timeout = args.join_timeout or math.inf
     playout = PlayoutSettings(args.playout_delay, args.display_fps)

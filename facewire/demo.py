@@ -23,20 +23,20 @@ import cv2
 import numpy as np
 
 from facewire.call import sound_as_asked
+from facewire.protocol.clock import now_us
+from facewire.protocol.constants import CHANNELS
+from facewire.protocol.keys import write_keypair
+from facewire.protocol.transport import SenderEndpoint
+from facewire.receiver.recorder import Mp4Recorder, crop_to
+from facewire.sender.audio import with_sound
+from facewire.sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.lift import MarkerFaceTracker
+from facewire.sender.markers import NO_MARKERS
+from facewire.sender.rate_cap import GEOMETRY_KBPS
+from facewire.sender.session import run_sender, wait_until_ready
+from facewire.sender.snapshot_draft import draft
 from facewire.sheet import write_contact_sheet
-from protocol.clock import now_us
-from protocol.constants import CHANNELS
-from protocol.keys import write_keypair
-from protocol.transport import SenderEndpoint
-from receiver.recorder import Mp4Recorder, crop_to
-from sender.audio import with_sound
-from sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.lift import MarkerFaceTracker
-from sender.markers import NO_MARKERS
-from sender.rate_cap import GEOMETRY_KBPS
-from sender.session import run_sender, wait_until_ready
-from sender.snapshot_draft import draft
 
 logger = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ def _receiver_main(
     """Child process: join the call, record, send the report back."""
     logging.basicConfig(level=verbosity, format="%(asctime)s receiver %(name)s: %(message)s")
     try:
-        from receiver.session import run_receiver
+        from facewire.receiver.session import run_receiver
 
         report = run_receiver(
             HOST, ports[0], ports[1], output, join_timeout_s=JOIN_TIMEOUT_S, **keys

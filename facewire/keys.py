@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from protocol.keys import write_keypair
+from facewire.protocol.keys import write_keypair
 
 logger = logging.getLogger(__name__)
 
@@ -47,8 +47,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def _room_key(room: str, out: str, force: bool) -> int:
     from pathlib import Path
 
-    from protocol.sframe import RoomKey
-    from protocol.subjects import check_name
+    from facewire.protocol.sframe import RoomKey
+    from facewire.protocol.subjects import check_name
 
     check_name(room, "room")
     path = Path(out) / f"{room}.room"

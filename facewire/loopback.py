@@ -18,14 +18,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol.channels import FrameValues
-from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
-from receiver.decoder import FaceDecoder
+from facewire.protocol.channels import FrameValues
+from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
+from facewire.receiver.decoder import FaceDecoder
 
 if TYPE_CHECKING:
-    from models.pose import Pose
-    from sender.capture import CapturedFrame
-    from sender.encoder import FaceEncoder
+    from facewire.models.pose import Pose
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
 
 
 class Loopback:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.keys import PUBLIC_SUFFIX, load_keypair, load_public_key
+from facewire.protocol.keys import PUBLIC_SUFFIX, load_keypair, load_public_key
 
 logger = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ Frame i of the output is scored against frame i of the input: frames are aligned
 never by container timestamps. An output frame that is missing (dropped, or the output ends
 early) counts as the previous output frame held on screen.
 
-Three regions, each made from the INPUT frame's own 468 landmarks (``sender.landmarks``):
+Three regions, each made from the INPUT frame's own 468 landmarks (``facewire.sender.landmarks``):
 
 - ``face``: the convex hull of the landmarks' (x, y);
 - ``head``: the face hull widened to take in hair, ears and chin (see :func:`head_polygon`);
@@ -36,10 +36,10 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from receiver.recorder import crop_to, padded_size
+from facewire.receiver.recorder import crop_to, padded_size
 
 if TYPE_CHECKING:
-    from sender.landmarks import LandmarkTracker
+    from facewire.sender.landmarks import LandmarkTracker
 
 logger = logging.getLogger(__name__)
 
@@ -352,7 +352,7 @@ def track_all(
 ) -> Iterator[np.ndarray | None]:
     """The tracker's landmarks ((468, 3) image pixels, or None) of each frame, in order."""
     if tracker is None:
-        from sender.landmarks import LandmarkTracker
+        from facewire.sender.landmarks import LandmarkTracker
 
         tracker = LandmarkTracker()
     for frame in frames:

@@ -24,7 +24,7 @@ texture (UV) space, so every frame adds to the same texel:
 Texels seen obliquely, or squeezed (the mouth's inside while the mouth is shut), count less.
 The map (PNG) shows, over the snapshot texture: the mean flow magnitude (seed Fig. 2), the
 mean shape change (Fig. 1) and the texture change's share T / (T + D) where it is large
-(Fig. 3), with the REM regions of :mod:`models.rem` drawn over each panel. The JSON gives
+(Fig. 3), with the REM regions of :mod:`facewire.models.rem` drawn over each panel. The JSON gives
 the figures per region and for the face, and the verdict per region: a REM when its texture
 change is at least :data:`REM_RATIO` times its shape change and :data:`STANDS_OUT` times the
 face's typical (median) texel's.
@@ -42,10 +42,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from models.rem import MOUTH_INTERIOR, RemLayout
-from sender.capture import CapturedFrame, CaptureError, VideoSource
-from sender.encoder import FaceEncoder
-from sender.texture import UvRasteriser
+from facewire.models.rem import MOUTH_INTERIOR, RemLayout
+from facewire.sender.capture import CapturedFrame, CaptureError, VideoSource
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
 

@@ -16,9 +16,9 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from protocol import subjects
-from protocol.media_path import DEFAULT_BUDGET_BPS
-from protocol.sframe import RoomKey, Sealer, new_kid
+from facewire.protocol import subjects
+from facewire.protocol.media_path import DEFAULT_BUDGET_BPS
+from facewire.protocol.sframe import RoomKey, Sealer, new_kid
 
 logger = logging.getLogger(__name__)
 
@@ -92,9 +92,9 @@ class _SendingSide:
     def _send(self) -> None:
         from facewire.call import FACE_SEARCH_FRAMES, _Source, sound_as_asked
         from facewire.room_sender import RoomSender
-        from sender.audio import with_sound
-        from sender.encoder import FaceEncoder
-        from sender.session import restamped, run_sender, start_session
+        from facewire.sender.audio import with_sound
+        from facewire.sender.encoder import FaceEncoder
+        from facewire.sender.session import restamped, run_sender, start_session
 
         args = self.args
         source = _Source(args)
@@ -153,8 +153,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             gallery = None
             if args.view:
+                from facewire.receiver.live_view import LiveView, parse_view_address
                 from facewire.room_gallery import Gallery
-                from receiver.live_view import LiveView, parse_view_address
 
                 view = LiveView(*parse_view_address(args.view))
                 gallery = Gallery(view)

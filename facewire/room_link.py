@@ -16,8 +16,8 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from protocol import subjects
-from protocol.clock import now_us
+from facewire.protocol import subjects
+from facewire.protocol.clock import now_us
 
 logger = logging.getLogger(__name__)
 

@@ -20,12 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from protocol import subjects
-from protocol.bundle import FRAGMENT, BundleError, Fragment, Reassembly, unpack
-from protocol.channels import ChainBroken
-from protocol.clock import now_us
-from protocol.constants import PROTOCOL_VERSION
-from protocol.packets import (
+from facewire.protocol import subjects
+from facewire.protocol.bundle import FRAGMENT, BundleError, Fragment, Reassembly, unpack
+from facewire.protocol.channels import ChainBroken
+from facewire.protocol.clock import now_us
+from facewire.protocol.constants import PROTOCOL_VERSION
+from facewire.protocol.packets import (
     AudioFrame,
     Bye,
     DeltaFrame,
@@ -37,7 +37,7 @@ from protocol.packets import (
     Snapshot,
     decode,
 )
-from protocol.sframe import Header, Opener, RoomKey, Sealer, SFrameError, kid_is_of
+from facewire.protocol.sframe import Header, Opener, RoomKey, Sealer, SFrameError, kid_is_of
 
 logger = logging.getLogger(__name__)
 
@@ -83,8 +83,8 @@ class Peer:
         record: Path | None,
         gallery: Any = None,
     ) -> None:
-        from receiver.decoder import FaceDecoder
-        from receiver.interpolation import Painter
+        from facewire.receiver.decoder import FaceDecoder
+        from facewire.receiver.interpolation import Painter
 
         self.name = name
         self.kid = kid
@@ -96,7 +96,7 @@ class Peer:
         self.painter = Painter(self.decoder) if drawn else None
         self.recorder: Any = None
         if record is not None:
-            from receiver.recording import BackgroundRecorder
+            from facewire.receiver.recording import BackgroundRecorder
 
             self.recorder = BackgroundRecorder(
                 record, snapshot.width, snapshot.height, snapshot.fps

@@ -2,7 +2,7 @@
 publishing to the room instead of to one receiver.
 
 :class:`RoomSender` is the endpoint ``run_sender`` publishes to: the packets go into the
-media path's :class:`~protocol.media_path.Bundler`, as on a two-party call's datagram path,
+media path's :class:`~facewire.protocol.media_path.Bundler`, as on a two-party call's datagram path,
 and each bundle leaves as one sealed NATS message on ``fw.ROOM.m.NAME``. The snapshot goes
 to the room's KV bucket once, where late joiners read it. Keyframe requests come from the
 receiving side (which opens the control messages) through :meth:`request_keyframe`.
@@ -17,12 +17,11 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 
-from facewire.room_link import RoomLink
-from protocol import subjects
-from protocol.clock import now_us
-from protocol.constants import HEARTBEAT_INTERVAL_S
-from protocol.media_path import DATAGRAM_COST, Bundler
-from protocol.packets import (
+from facewire.protocol import subjects
+from facewire.protocol.clock import now_us
+from facewire.protocol.constants import HEARTBEAT_INTERVAL_S
+from facewire.protocol.media_path import DATAGRAM_COST, Bundler
+from facewire.protocol.packets import (
     Bye,
     DeltaFrame,
     Heartbeat,
@@ -32,7 +31,8 @@ from protocol.packets import (
     RemPatch,
     Snapshot,
 )
-from protocol.sframe import RoomKey, Sealer
+from facewire.protocol.sframe import RoomKey, Sealer
+from facewire.room_link import RoomLink
 
 logger = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from receiver.recorder import crop_to
+from facewire.receiver.recorder import crop_to
 
 logger = logging.getLogger(__name__)
 

@@ -22,15 +22,15 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from models.mesh import load_canonical
-from models.pose import FRONTAL, Pose, estimate_pose
-from models.rig import load_rig
-from receiver.recorder import Mp4Recorder
-from sender.capture import CaptureError, VideoSource
-from sender.landmarks import ACQUIRED, STATES, TRACKED, Landmarks, LandmarkTracker
-from sender.markers import HIDDEN, MERGED, Markers, MarkerTracker
-from sender.markers import STATES as MARKER_STATES
-from sender.smoothing import LandmarkSmoother
+from facewire.models.mesh import load_canonical
+from facewire.models.pose import FRONTAL, Pose, estimate_pose
+from facewire.models.rig import load_rig
+from facewire.receiver.recorder import Mp4Recorder
+from facewire.sender.capture import CaptureError, VideoSource
+from facewire.sender.landmarks import ACQUIRED, STATES, TRACKED, Landmarks, LandmarkTracker
+from facewire.sender.markers import HIDDEN, MERGED, Markers, MarkerTracker
+from facewire.sender.markers import STATES as MARKER_STATES
+from facewire.sender.smoothing import LandmarkSmoother
 
 logger = logging.getLogger(__name__)
 
@@ -130,7 +130,7 @@ class TrackInput:
 class PoseFitter:
     """Head pose of 468 image landmarks: the similarity ``image = scale R model + t`` that
     puts the canonical mesh's pose markers (rig role "pose": nose bridge, nose tip, forehead,
-    eye corners, ...) onto the landmarks, by least squares (``models.pose.estimate_pose``,
+    eye corners, ...) onto the landmarks, by least squares (``facewire.models.pose.estimate_pose``,
     as the sender's encoder does)."""
 
     def __init__(self) -> None:

@@ -34,8 +34,8 @@ def add_watch_arguments(p: argparse.ArgumentParser) -> None:
 
 def check_watch_arguments(args: argparse.Namespace) -> None:
     """What can be said wrong before anything starts: ValueError or RuntimeError, one line."""
-    from receiver.live_view import parse_view_address
-    from receiver.window import NoDisplay, display_problem
+    from facewire.receiver.live_view import parse_view_address
+    from facewire.receiver.window import NoDisplay, display_problem
 
     if args.view is not None:
         parse_view_address(args.view)
@@ -56,8 +56,8 @@ class Watchers:
     """
 
     def __init__(self, args: argparse.Namespace, tell: Callable[[str], None]) -> None:
-        from receiver.live_view import LiveView, parse_view_address
-        from receiver.window import Window
+        from facewire.receiver.live_view import LiveView, parse_view_address
+        from facewire.receiver.window import Window
 
         check_watch_arguments(args)
         self._tell = tell

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from models import bspline
-from models.mesh import FaceMesh, load_obj, save_obj
-from models.wires import WireDeformer
+from facewire.models import bspline
+from facewire.models.mesh import FaceMesh, load_obj, save_obj
+from facewire.models.wires import WireDeformer
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def extract(
     rig_path: str | Path | None = None,
 ) -> dict[str, Any]:
     """Fit wire parameters turning base_obj into template_obj; write and return PARAMS.json."""
-    from models.rig import load_rig
+    from facewire.models.rig import load_rig
 
     base = load_obj(base_obj)
     template = load_obj(template_obj)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.face_channels import HYSTERESIS
+from facewire.models.face_channels import HYSTERESIS
 
 CAMERA = "camera"
 CAMERA_SIZE = 4

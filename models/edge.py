@@ -24,8 +24,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from models.surround import reach_weight
-from models.thin_plate import ThinPlate
+from facewire.models.surround import reach_weight
+from facewire.models.thin_plate import ThinPlate
 
 #: The channel of the edge's corrections: (x, y) per point, pixels of the call's frame.
 EDGE = "edge"

@@ -8,7 +8,7 @@ Both ends agree on what each channel means (docs/protocol.md section 6):
 - ``pose.translation`` (3): translation in image pixels;
 - ``wire`` (K): coefficients of the rig's wire basis (:class:`WireBasis`), in cm;
 - ``lips`` (8): the inner lip contour where the wires cannot put it, four markers' x and y,
-  in cm (:mod:`models.mouth_opening`).
+  in cm (:mod:`facewire.models.mouth_opening`).
 
 The steps are chosen from the error they may cause on screen: each channel moves no vertex by
 more than ``error_px`` pixels at the call's size (see :func:`channel_steps`).
@@ -25,8 +25,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from models.mesh import data_path
-from models.pose import FRONTAL, Pose
+from facewire.models.mesh import data_path
+from facewire.models.pose import FRONTAL, Pose
 
 logger = logging.getLogger(__name__)
 

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from models.mesh import FaceMesh
+from facewire.models.mesh import FaceMesh
 
 logger = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ Metric = Literal["edges", "euclidean"]
 
 
 class GdeSpecLike(Protocol):
-    """Anything naming a GDE like ``models.rig.GdeSpec`` (read-only attributes)."""
+    """Anything naming a GDE like ``facewire.models.rig.GdeSpec`` (read-only attributes)."""
 
     @property
     def name(self) -> str: ...
@@ -50,7 +50,7 @@ class GdeSpecLike(Protocol):
 
 @dataclass(frozen=True)
 class GdeDef:
-    """A plain GDE specification (the same fields as ``models.rig.GdeSpec``).
+    """A plain GDE specification (the same fields as ``facewire.models.rig.GdeSpec``).
 
     size : edge depth for ``metric="edges"``, centimetres for ``"euclidean"``
     """
@@ -278,7 +278,7 @@ class GdeSet:
     """Many GDEs on one mesh, applied together as one sparse product.
 
     specs : objects with ``name``, ``control_vertex``, ``size``, ``metric`` (e.g.
-    :class:`GdeDef` or ``models.rig.GdeSpec``); their order fixes the row order of the
+    :class:`GdeDef` or ``facewire.models.rig.GdeSpec``); their order fixes the row order of the
     (g, 3) displacement arrays. Overlapping elements add their displacements.
     """
 
@@ -387,7 +387,7 @@ class GdeSet:
 
 
 def rig_mouth_seam(mesh: FaceMesh, lips: Any) -> np.ndarray:
-    """:func:`mouth_seam_edges` for a ``models.rig.LipRig`` (markers + four contours)."""
+    """:func:`mouth_seam_edges` for a ``facewire.models.rig.LipRig`` (markers + four contours)."""
     inner = [int(v) for v in lips.contours[-1]]
     ring_pos = mesh.vertices[inner]
 

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from models.mesh import FaceMesh
+from facewire.models.mesh import FaceMesh
 
 logger = logging.getLogger(__name__)
 
@@ -260,7 +260,7 @@ class MouthRig:
 
     @classmethod
     def from_rig(cls, mesh: FaceMesh, rig: Any, **kwargs: float) -> MouthRig:
-        """From a ``models.rig.Rig`` (its ``lips``) or a ``LipRig`` directly."""
+        """From a ``facewire.models.rig.Rig`` (its ``lips``) or a ``LipRig`` directly."""
         lips = getattr(rig, "lips", rig)
         return cls(mesh, dict(lips.markers), list(lips.contours), **kwargs)
 

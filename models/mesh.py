@@ -160,7 +160,7 @@ def save_obj(mesh: FaceMesh, path: str | Path) -> None:
 
 def data_path(name: str) -> Path:
     """Path of a file shipped in models/data."""
-    return Path(str(resources.files("models") / "data" / name))
+    return Path(str(resources.files("facewire.models") / "data" / name))
 
 
 def load_canonical() -> FaceMesh:

@@ -5,7 +5,7 @@ lips' wires, so no wire parameters part them: on carphone (real footage) the tra
 inner lips 12.5 px apart in a shout and the wire fit kept them 1.9 px apart, the lips
 stretched over the open mouth.
 
-Seed 003's mouth model (section 3.7, :class:`models.homotopy.MouthRig`) carries what the
+Seed 003's mouth model (section 3.7, :class:`facewire.models.homotopy.MouthRig`) carries what the
 wires leave: the inner contour moves by the displacement of four markers on it (left, top,
 right, bottom), spread around the contour by angle on the ellipse through them, and the two
 rings between the inner and the outer contour take 2/3 and 1/3 of it, so the lips' body
@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.homotopy import MouthRig
-from models.mesh import FaceMesh
-from models.rig import Rig
+from facewire.models.homotopy import MouthRig
+from facewire.models.mesh import FaceMesh
+from facewire.models.rig import Rig
 
 #: Values of the ``lips`` channel (models.face_channels.LIPS): x then y of the left, top,
 #: right and bottom markers' displacement, cm, model space (y up).

@@ -21,7 +21,7 @@ INPUT_SIZE = (256, 144)  # width, height
 
 
 def model_path(name: str = MODEL) -> Path:
-    return Path(str(resources.files("models") / "data" / name))
+    return Path(str(resources.files("facewire.models") / "data" / name))
 
 
 @functools.cache

@@ -1,7 +1,7 @@
 """Head pose from 2D image points of known model points, under our orthographic camera.
 
-``models.pose.estimate_pose`` needs 3D image points (landmarks carry a depth); coloured
-markers give only x, y. With the camera of ``models.pose`` (image = scale R model + t, the
+``facewire.models.pose.estimate_pose`` needs 3D image points (landmarks carry a depth); coloured
+markers give only x, y. With the camera of ``facewire.models.pose`` (image = scale R model + t, the
 image's x and y are a scaled orthographic projection), k >= 4 points not all in one plane
 fix an affine camera in closed form; its nearest scaled rotation starts Gauss-Newton on
 the rotation, the scale and the in-image translation. With a previous pose to start from,
@@ -15,7 +15,7 @@ import logging
 
 import numpy as np
 
-from models.pose import Pose
+from facewire.models.pose import Pose
 
 logger = logging.getLogger(__name__)
 

@@ -2,8 +2,8 @@
 
 Seed 002 (Noh, Fidaleo and Neumann), section 2.2: the point where the ray from the camera
 through an image point meets the face mesh is that point's 3D position. Our camera is
-orthographic (``models.pose``: image = scale R model + t, x and y in pixels, z away from the
-camera), so the ray through pixel (u, v) is the line {(u, v, z)}: in model space it runs
+orthographic (``facewire.models.pose``: image = scale R model + t, x and y in pixels, z away
+from the camera), so the ray through pixel (u, v) is the line {(u, v, z)}: in model space it runs
 along ``R.T @ (0, 0, 1)``.
 
 Speed comes from a bounding volume hierarchy over the triangles, built once for a topology
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.pose import Pose
+from facewire.models.pose import Pose
 
 logger = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ class RayCaster:
     """Nearest hits of rays on a triangle mesh whose vertices may move between casts.
 
     triangles : (m, 3) vertex indices (counter-clockwise seen from outside, as
-    ``models.mesh.FaceMesh``); vertices : (n, 3) the rest positions the tree is built on.
+    ``facewire.models.mesh.FaceMesh``); vertices : (n, 3) the rest positions the tree is built on.
     Call :meth:`update` with new vertex positions (same topology), then :meth:`cast`.
     """
 

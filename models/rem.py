@@ -21,7 +21,7 @@ Regions:
   duplicates. :attr:`RemLayout.triangles`, :attr:`RemLayout.uvs` and
   :meth:`RemLayout.vertices` are that mesh, for unwrapping and rendering.
 
-Texel conventions are those of ``sender.texture``: v = 0 at the top row, texel (row j,
+Texel conventions are those of ``facewire.sender.texture``: v = 0 at the top row, texel (row j,
 column i) of a T x T texture centred at u = (i + 0.5) / T, v = (j + 0.5) / T.
 """
 
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from models.rig import Rig
+from facewire.models.rig import Rig
 
 logger = logging.getLogger(__name__)
 

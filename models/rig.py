@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from models.mesh import data_path
+from facewire.models.mesh import data_path
 
 logger = logging.getLogger(__name__)
 

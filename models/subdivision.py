@@ -25,7 +25,7 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 
-from models.mesh import FaceMesh
+from facewire.models.mesh import FaceMesh
 
 logger = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ used to be. Instead, every frame warps the snapshot frame with a thin-plate spli
   warp fades out just beyond it, so the background stays where the camera sees it. A camera
   homography, when given, moves the whole scene.
 
-Given a person mask of the snapshot frame (``receiver.person``), only the person is warped
+Given a person mask of the snapshot frame (``facewire.receiver.person``), only the person is warped
 this way. The scene behind is the snapshot frame with the person painted out, moved by the
 camera alone, so walls and windows near a moving head stay straight. Where the person has
 moved away, that painted-out scene shows. Then nothing holds the top of the head back: the
@@ -43,7 +43,7 @@ import logging
 import cv2
 import numpy as np
 
-from models.thin_plate import ThinPlate
+from facewire.models.thin_plate import ThinPlate
 
 logger = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from typing import Any, Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from models import bspline
+from facewire.models import bspline
 
 logger = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
-from protocol.packets import PacketError
+from facewire.protocol.packets import PacketError
 
 FRAGMENT = 0x31
 REPORT = 0x32

@@ -7,9 +7,9 @@ path, so a new channel costs one table entry.
 
 Per frame the sender hands integer values to :class:`ChannelEncoder`, which makes
 
-- a :class:`~protocol.packets.KeyFrame` every ``keyframe_interval`` frames and on request:
+- a :class:`~facewire.protocol.packets.KeyFrame` every ``keyframe_interval`` frames and on request:
   absolute values, all coding contexts reset, decodable on its own;
-- otherwise a :class:`~protocol.packets.DeltaFrame`: each value predicted by the previous
+- otherwise a :class:`~facewire.protocol.packets.DeltaFrame`: each value predicted by the previous
   frame's, the residuals coded with adaptive contexts that live from one keyframe to the next;
 - or nothing, when no value changed (the receiver keeps showing the last frame), for at most
   ``MAX_SEQ_STEP - 1`` frames in a row.
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.constants import (
+from facewire.protocol.constants import (
     INT64_MAX,
     INT64_MIN,
     MAX_CHANNEL_VALUE,
@@ -36,8 +36,8 @@ from protocol.constants import (
     MAX_TIME_RESIDUAL_MS,
     UINT32_MAX,
 )
-from protocol.packets import DeltaFrame, KeyFrame, PacketError
-from protocol.rangecoder import (
+from facewire.protocol.packets import DeltaFrame, KeyFrame, PacketError
+from facewire.protocol.rangecoder import (
     Decoder,
     Encoder,
     IntContexts,
@@ -264,7 +264,7 @@ class ChannelDecoder(_Codec):
         """Values of ``packet``.
 
         Raises :class:`ChainBroken` for a delta frame after a gap (until the next keyframe),
-        and :class:`~protocol.packets.PacketError` for a body that does not decode; either
+        and :class:`~facewire.protocol.packets.PacketError` for a body that does not decode; either
         way the chain stays broken until a keyframe arrives.
         """
         expected = (self._counter + 1) % COUNTER_MOD

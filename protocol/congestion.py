@@ -33,7 +33,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from protocol.datagram import IP_UDP_BYTES
+from facewire.protocol.datagram import IP_UDP_BYTES
 
 logger = logging.getLogger(__name__)
 

@@ -1,8 +1,8 @@
 """Protocol constants: version, packet kinds, limits, timings, channel names.
 
 Everything a compatible peer must agree on lives here (and in docs/protocol.md), so that the
-codec (:mod:`protocol.packets`), the quantiser (:mod:`protocol.quant`) and the transport
-(:mod:`protocol.transport`) never disagree.
+codec (:mod:`facewire.protocol.packets`), the quantiser (:mod:`facewire.protocol.quant`) and the
+transport (:mod:`facewire.protocol.transport`) never disagree.
 """
 
 from __future__ import annotations

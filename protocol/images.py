@@ -9,9 +9,9 @@ runs both before it lets OpenCV near the pixels, and checks that what OpenCV ret
 the header promised.
 
 Every failure is an :class:`ImageError` (a ``ValueError``) with a precise message, whatever the
-bytes. :mod:`protocol.packets` runs :func:`check_image` on every image a packet carries, and
-turns its ImageError into a ``PacketError``. OpenCV is imported only inside
-:func:`decode_image`, so ``import protocol`` works on a machine without it.
+bytes. :mod:`facewire.protocol.packets` runs :func:`check_image` on every image a packet carries,
+and turns its ImageError into a ``PacketError``. OpenCV is imported only inside
+:func:`decode_image`, so ``import facewire.protocol`` works on a machine without it.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from typing import Final, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.constants import MAX_IMAGE_SIDE
+from facewire.protocol.constants import MAX_IMAGE_SIDE
 
 logger = logging.getLogger(__name__)
 

@@ -35,7 +35,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-from protocol.bundle import (
+from facewire.protocol.bundle import (
     FRAGMENT,
     FRAGMENT_HEADER,
     MAX_DATAGRAM,
@@ -49,9 +49,9 @@ from protocol.bundle import (
     pack,
     unpack,
 )
-from protocol.congestion import RateController
-from protocol.constants import PROTOCOL_VERSION
-from protocol.datagram import (
+from facewire.protocol.congestion import RateController
+from facewire.protocol.constants import PROTOCOL_VERSION
+from facewire.protocol.datagram import (
     IP_UDP_BYTES,
     OVERHEAD,
     RECEIVER_TO_SENDER,
@@ -62,7 +62,7 @@ from protocol.datagram import (
     key_id_of,
     new_secret,
 )
-from protocol.packets import MediaKey
+from facewire.protocol.packets import MediaKey
 
 logger = logging.getLogger(__name__)
 

@@ -22,8 +22,8 @@ from functools import cache
 
 import numpy as np
 
-from models.mesh import load_canonical
-from protocol.rangecoder import Decoder, Encoder, IntContexts, decode_sint, encode_sint
+from facewire.models.mesh import load_canonical
+from facewire.protocol.rangecoder import Decoder, Encoder, IntContexts, decode_sint, encode_sint
 
 #: The snapshot's meta key that says its vertices are coded this way, and their step in cm.
 VERTEX_STEP = "vertex_step"

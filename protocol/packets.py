@@ -2,8 +2,8 @@
 
 Every packet starts with one header byte, ``0x20 | kind`` (version 2 in the high nibble).
 Frame packets (:class:`KeyFrame`, :class:`DeltaFrame`) are then a few fixed binary fields and
-a range-coded body (:mod:`protocol.channels` decodes the body); every other kind is one msgpack
-array of its fields. See docs/protocol.md for the layout of each kind. Each class has
+a range-coded body (:mod:`facewire.protocol.channels` decodes the body); every other kind is one
+msgpack array of its fields. See docs/protocol.md for the layout of each kind. Each class has
 ``parse(data)`` and ``__bytes__``; :func:`decode` is the one dispatch point that turns any
 received bytes into a packet or raises :class:`PacketError` with a precise message.
 Constructors validate their fields the same way, so a packet that can be built can be encoded
@@ -28,8 +28,8 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import mesh_code
-from protocol.constants import (
+from facewire.protocol import mesh_code
+from facewire.protocol.constants import (
     CHANNEL_AUDIO,
     CHANNEL_CONTROL,
     CHANNEL_GEOMETRY,
@@ -56,7 +56,7 @@ from protocol.constants import (
     UINT32_MAX,
     Kind,
 )
-from protocol.images import ImageError, check_image
+from facewire.protocol.images import ImageError, check_image
 
 logger = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def _bytes(name: str, value: object) -> bytes:
 def _image(name: str, value: object, codec: str | None = None) -> bytes:
     """An encoded image whose header is valid and within the size limits (or empty).
 
-    Only the header is read (:func:`protocol.images.check_image`): a peer cannot make the
+    Only the header is read (:func:`facewire.protocol.images.check_image`): a peer cannot make the
     decoder spend more than that, and a receiver that decodes the pixels later knows the
     image is at most MAX_IMAGE_SIDE on a side. ``codec`` ("jpeg", "png") is the one required.
     """

@@ -14,7 +14,7 @@ import logging
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol.constants import MAX_CHANNEL_VALUE
+from facewire.protocol.constants import MAX_CHANNEL_VALUE
 
 logger = logging.getLogger(__name__)
 

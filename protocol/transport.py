@@ -11,7 +11,7 @@ Security: by default every socket uses CURVE. The sender's PUB and ROUTER are CU
 the sender's secret key, and a ZAP handler admits only the clients whose public keys it was
 given (``allowed_keys``); the receiver's SUB and DEALER are CURVE clients that know the sender's
 public key, so an impostor that binds the sender's ports cannot complete a handshake with them.
-Unencrypted sockets must be asked for with ``plain=True``. Key files: :mod:`protocol.keys`.
+Unencrypted sockets must be asked for with ``plain=True``. Key files: :mod:`facewire.protocol.keys`.
 
 Handshake (docs/protocol.md, "Joining"): the receiver subscribes first, then proves that its
 subscription is live before it asks for the snapshot: it sends a Heartbeat probe over DEALER
@@ -63,9 +63,9 @@ from typing import Self, TypeVar
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
-from protocol.bundle import MAX_REASSEMBLED
-from protocol.channels import COUNTER_MOD
-from protocol.constants import (
+from facewire.protocol.bundle import MAX_REASSEMBLED
+from facewire.protocol.channels import COUNTER_MOD
+from facewire.protocol.constants import (
     BACK_CHANNEL_HWM,
     CHANNEL_CONTROL,
     CHANNEL_SNAPSHOT,
@@ -97,9 +97,9 @@ from protocol.constants import (
     UPDATE_HWM,
     ZAP_DOMAIN,
 )
-from protocol.hostile import Refusals
-from protocol.keys import KeyPair, load_keypair, load_public_key, load_public_keys
-from protocol.media_path import (
+from facewire.protocol.hostile import Refusals
+from facewire.protocol.keys import KeyPair, load_keypair, load_public_key, load_public_keys
+from facewire.protocol.media_path import (
     DATAGRAM_COST,
     DEFAULT_BUDGET_BPS,
     HELLO_INTERVAL_S,
@@ -109,7 +109,7 @@ from protocol.media_path import (
     SenderMediaPath,
     WireCounts,
 )
-from protocol.packets import (
+from facewire.protocol.packets import (
     AudioFrame,
     Bye,
     DeltaFrame,

@@ -30,9 +30,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from protocol.clock import now_us
-from protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUDIO_RATE
-from protocol.packets import AudioFrame, KeyFrame
+from facewire.protocol.clock import now_us
+from facewire.protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUDIO_RATE
+from facewire.protocol.packets import AudioFrame, KeyFrame
 
 logger = logging.getLogger(__name__)
 

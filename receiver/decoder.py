@@ -15,9 +15,9 @@ import logging
 import cv2
 import numpy as np
 
-from models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
-from models.edge import EDGE, EDGE_POINTS, EDGE_SIZE, correct
-from models.face_channels import (
+from facewire.models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
+from facewire.models.edge import EDGE, EDGE_POINTS, EDGE_SIZE, correct
+from facewire.models.face_channels import (
     LIPS,
     POSE_ROTATION,
     POSE_SCALE,
@@ -28,20 +28,20 @@ from models.face_channels import (
     pose_from_channels,
     rig_hash,
 )
-from models.mesh import load_canonical
-from models.mouth_opening import LIPS_SIZE, MouthOpening
-from models.person import person_mask
-from models.pose import Pose
-from models.rem import RemLayout
-from models.rig import Rig, load_rig
-from models.surround import SurroundWarp
-from models.wires import WireDeformer
-from protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
-from protocol.constants import MAX_IMAGE_SIDE
-from protocol.images import ImageError, decode_image
-from protocol.packets import DeltaFrame, KeyFrame, PacketError, RemPatch, Snapshot
-from protocol.quant import dequantise
-from receiver.rem import RemMerger
+from facewire.models.mesh import load_canonical
+from facewire.models.mouth_opening import LIPS_SIZE, MouthOpening
+from facewire.models.person import person_mask
+from facewire.models.pose import Pose
+from facewire.models.rem import RemLayout
+from facewire.models.rig import Rig, load_rig
+from facewire.models.surround import SurroundWarp
+from facewire.models.wires import WireDeformer
+from facewire.protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
+from facewire.protocol.constants import MAX_IMAGE_SIDE
+from facewire.protocol.images import ImageError, decode_image
+from facewire.protocol.packets import DeltaFrame, KeyFrame, PacketError, RemPatch, Snapshot
+from facewire.protocol.quant import dequantise
+from facewire.receiver.rem import RemMerger
 
 logger = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ class FaceDecoder:
         #: REM patches that came without a session able to take them.
         self.rem_dropped = 0
         layout = self.rem.layout if self.rem is not None else None
-        from receiver.render import FaceRenderer  # OpenGL only where it is needed
+        from facewire.receiver.render import FaceRenderer  # OpenGL only where it is needed
 
         self.renderer = FaceRenderer(
             snapshot.width,
@@ -212,7 +212,8 @@ class FaceDecoder:
 
     def add_patch(self, packet: RemPatch) -> bool:
         """Keep a REM patch for the frame it belongs to (drawn by :meth:`reconstruct`);
-        False, and counted, when it cannot be used (see :class:`receiver.rem.RemMerger`)."""
+        False, and counted, when it cannot be used (see
+        :class:`facewire.receiver.rem.RemMerger`)."""
         if self.rem is None:
             self.rem_dropped += 1
             return False

@@ -5,11 +5,11 @@ the face's edge corrections.
 Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
 
 - the wire parameters blend feature by feature (seed 000, section 5, Fig. 4-6, through
-  :func:`models.blending.blend`): the eyes' curves follow sqrt(t), the mouth's t^3 and every
-  other feature t, so eyes and mouth move on their own curves; the inner lips' opening
+  :func:`facewire.models.blending.blend`): the eyes' curves follow sqrt(t), the mouth's t^3 and
+  every other feature t, so eyes and mouth move on their own curves; the inner lips' opening
   follows the mouth's;
 - the lips themselves, the mouth rig's four contours, go from frame a's contours to frame b's
-  on seed 003's homotopy sweep (:meth:`models.homotopy.MouthRig.between`), with the four
+  on seed 003's homotopy sweep (:meth:`facewire.models.homotopy.MouthRig.between`), with the four
   lip markers' velocities at both frames as its control vectors, and the skin around them
   follows. On real footage this puts the lips between frames 12-41% nearer where they were
   than the mouth's t^3 (BENCHMARKS.md, "The lips between frames");
@@ -19,7 +19,8 @@ Between frames a and b, at t in [0, 1] (0: a, 1: b, by time):
 - the scene's four corners move linearly (the camera's motion as the protocol carries it),
   and so do the face's edge corrections (models/edge.py).
 
-:class:`Painter` draws exact frames and blends through one :class:`~receiver.decoder.FaceDecoder`.
+:class:`Painter` draws exact frames and blends through one
+:class:`~facewire.receiver.decoder.FaceDecoder`.
 """
 
 from __future__ import annotations
@@ -31,13 +32,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from models.blending import blend
-from models.camera import corners_from_homography, homography_from_corners
-from models.pose import Pose
-from protocol.channels import FrameValues
+from facewire.models.blending import blend
+from facewire.models.camera import corners_from_homography, homography_from_corners
+from facewire.models.pose import Pose
+from facewire.protocol.channels import FrameValues
 
 if TYPE_CHECKING:
-    from receiver.decoder import FaceDecoder
+    from facewire.receiver.decoder import FaceDecoder
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections import deque
 
-from protocol.constants import LATE_FRAME_MS, LATE_WINDOW_S
+from facewire.protocol.constants import LATE_FRAME_MS, LATE_WINDOW_S
 
 
 class LateFrames:

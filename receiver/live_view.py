@@ -36,8 +36,8 @@ import cv2
 import numpy as np
 from aiohttp import web
 
-from receiver.live_figures import LiveFigures
-from receiver.live_page import page
+from facewire.receiver.live_figures import LiveFigures
+from facewire.receiver.live_page import page
 
 logger = logging.getLogger(__name__)
 

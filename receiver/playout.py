@@ -40,7 +40,7 @@ from typing import Protocol
 
 import numpy as np
 
-from protocol.channels import FrameValues
+from facewire.protocol.channels import FrameValues
 
 logger = logging.getLogger(__name__)
 

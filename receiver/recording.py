@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from receiver.recorder import Mp4Recorder
+from facewire.receiver.recorder import Mp4Recorder
 
 logger = logging.getLogger(__name__)
 

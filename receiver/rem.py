@@ -31,11 +31,11 @@ from collections import Counter
 import cv2
 import numpy as np
 
-from models.colour import ColourStats, adapt, reference_colour, to_hsv
-from models.rem import EYES, RemLayout
-from protocol.constants import REM_CACHE
-from protocol.images import ImageError, decode_image
-from protocol.packets import RemPatch
+from facewire.models.colour import ColourStats, adapt, reference_colour, to_hsv
+from facewire.models.rem import EYES, RemLayout
+from facewire.protocol.constants import REM_CACHE
+from facewire.protocol.images import ImageError, decode_image
+from facewire.protocol.packets import RemPatch
 
 logger = logging.getLogger(__name__)
 

@@ -20,18 +20,18 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.channels import ChainBroken, FrameValues
-from protocol.clock import now_us
-from protocol.constants import CALL, REFINED, SCENE, SNAPSHOT_MS
-from protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
-from protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
-from receiver.audio import CallSound
-from receiver.decoder import FaceDecoder, SnapshotError
-from receiver.interpolation import Painter
-from receiver.lateness import LateFrames
-from receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
-from receiver.recording import BackgroundRecorder
-from receiver.smoothness import display_figures
+from facewire.protocol.channels import ChainBroken, FrameValues
+from facewire.protocol.clock import now_us
+from facewire.protocol.constants import CALL, REFINED, SCENE, SNAPSHOT_MS
+from facewire.protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
+from facewire.protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
+from facewire.receiver.audio import CallSound
+from facewire.receiver.decoder import FaceDecoder, SnapshotError
+from facewire.receiver.interpolation import Painter
+from facewire.receiver.lateness import LateFrames
+from facewire.receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
+from facewire.receiver.recording import BackgroundRecorder
+from facewire.receiver.smoothness import display_figures
 
 logger = logging.getLogger(__name__)
 
@@ -208,7 +208,7 @@ def run_receiver(
 ) -> ReceiverReport:
     """Join the call at ``host`` and record the rebuilt frames to ``output`` (None: no file).
 
-    ``endpoint_options`` go to :class:`~protocol.transport.ReceiverEndpoint`: the keys
+    ``endpoint_options`` go to :class:`~facewire.protocol.transport.ReceiverEndpoint`: the keys
     (``secret_key_file`` and ``server_key_file`` for CURVE, or ``plain=True``) and
     ``bind=True`` to bind on ``host`` for a sender that connects.
 
@@ -328,7 +328,7 @@ def _import_renderer_meanwhile() -> None:
     """Import the renderer (pyrender, PyOpenGL: about 0.5 s) while the snapshot is on its way,
     not after it came: on a thin link the first picture is that much sooner."""
     threading.Thread(
-        target=importlib.import_module, args=("receiver.render",), name="import-renderer",
+        target=importlib.import_module, args=("facewire.receiver.render",), name="import-renderer",
         daemon=True,
     ).start()  # fmt: skip
 

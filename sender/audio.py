@@ -27,10 +27,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from protocol.clock import now_us
-from protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUDIO_RATE
-from protocol.packets import AudioFrame
-from sender.capture import CapturedFrame
+from facewire.protocol.clock import now_us
+from facewire.protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUDIO_RATE
+from facewire.protocol.packets import AudioFrame
+from facewire.sender.capture import CapturedFrame
 
 logger = logging.getLogger(__name__)
 
@@ -260,7 +260,7 @@ def open_track(path: str | Path) -> FileTrack | None:
 def demo_speech_path() -> Path:
     from importlib import resources
 
-    return Path(str(resources.files("sender") / "data" / DEMO_SPEECH))
+    return Path(str(resources.files("facewire.sender") / "data" / DEMO_SPEECH))
 
 
 class AudioSender:
@@ -339,7 +339,7 @@ class MicrophoneTrack:
     """The default input device through sounddevice (PortAudio), 48 kHz mono.
 
     Raises AudioError (one line) when sounddevice is not installed or there is no input
-    device. Samples are stamped with the clock of the video (:func:`protocol.clock.now_us`)
+    device. Samples are stamped with the clock of the video (:func:`facewire.protocol.clock.now_us`)
     when the callback delivers them, less their own duration.
     """
 

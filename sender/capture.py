@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from protocol.clock import now_us
+from facewire.protocol.clock import now_us
 
 logger = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ class CapturedFrame:
 
 def demo_clip_path() -> Path:
     """The bundled clip (rendered from the face model, with ground truth beside it)."""
-    return Path(str(resources.files("sender") / "data" / DEMO_CLIP))
+    return Path(str(resources.files("facewire.sender") / "data" / DEMO_CLIP))
 
 
 class VideoSource:

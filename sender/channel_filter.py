@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.camera import CAMERA
-from models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION
+from facewire.models.camera import CAMERA
+from facewire.models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION
 
 logger = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ KEYPOINT_NAMES = ("right_eye", "left_eye", "nose_tip", "mouth", "right_ear", "le
 
 def model_path(name: str) -> Path:
     """Path of a file shipped in sender/data."""
-    return Path(str(resources.files("sender") / "data" / name))
+    return Path(str(resources.files("facewire.sender") / "data" / name))
 
 
 def read_tflite(path: str | Path) -> cv2.dnn.Net:

@@ -17,8 +17,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from models.edge import EDGE_POINTS, edge_points
-from models.surround import SurroundWarp
+from facewire.models.edge import EDGE_POINTS, edge_points
+from facewire.models.surround import SurroundWarp
 
 #: A face wider than this many pixels is measured on the frame reduced by a whole factor,
 #: to between half this and this: a large face costs no more than a small one.

@@ -21,15 +21,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from models.camera import (
+from facewire.models.camera import (
     CAMERA,
     CAMERA_SIZE,
     camera_step,
     corners_from_homography,
     homography_from_corners,
 )
-from models.edge import EDGE, EDGE_SIZE, edge_step
-from models.face_channels import (
+from facewire.models.edge import EDGE, EDGE_SIZE, edge_step
+from facewire.models.face_channels import (
     DEFAULT_ERROR_PX,
     HYSTERESIS,
     LIPS,
@@ -42,31 +42,31 @@ from models.face_channels import (
     pose_from_channels,
     rig_hash,
 )
-from models.mesh import FaceMesh, load_canonical
-from models.mouth_opening import LIPS_SIZE, MouthOpening
-from models.person import person_mask
-from models.pose import Pose, estimate_pose
-from models.rem import RemLayout
-from models.rig import Rig, load_rig
-from models.wires import WireDeformer
-from protocol import mesh_code
-from protocol.channels import ChannelEncoder, ChannelSpec
-from protocol.constants import CALL, UINT32_MAX
-from protocol.images import decode_image
-from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
-from protocol.quant import dequantise, quantise
-from sender.camera_motion import CameraTracker
-from sender.capture import CapturedFrame
-from sender.channel_filter import ChannelSmoother
-from sender.edge import EdgeMeter
-from sender.fit_residual import FitResidual
-from sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
-from sender.lift import MarkerFaceTracker, MarkerFit
-from sender.rate_cap import EDGE_KBPS, GEOMETRY_KBPS, RateCap
-from sender.rem import RemEncoder
-from sender.scene_cut import SceneCut, another_face, face_box
-from sender.synthesis import FaceSynthesis
-from sender.texture import UvRasteriser
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.mouth_opening import LIPS_SIZE, MouthOpening
+from facewire.models.person import person_mask
+from facewire.models.pose import Pose, estimate_pose
+from facewire.models.rem import RemLayout
+from facewire.models.rig import Rig, load_rig
+from facewire.models.wires import WireDeformer
+from facewire.protocol import mesh_code
+from facewire.protocol.channels import ChannelEncoder, ChannelSpec
+from facewire.protocol.constants import CALL, UINT32_MAX
+from facewire.protocol.images import decode_image
+from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
+from facewire.protocol.quant import dequantise, quantise
+from facewire.sender.camera_motion import CameraTracker
+from facewire.sender.capture import CapturedFrame
+from facewire.sender.channel_filter import ChannelSmoother
+from facewire.sender.edge import EdgeMeter
+from facewire.sender.fit_residual import FitResidual
+from facewire.sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
+from facewire.sender.lift import MarkerFaceTracker, MarkerFit
+from facewire.sender.rate_cap import EDGE_KBPS, GEOMETRY_KBPS, RateCap
+from facewire.sender.rem import RemEncoder
+from facewire.sender.scene_cut import SceneCut, another_face, face_box
+from facewire.sender.synthesis import FaceSynthesis
+from facewire.sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
 
@@ -137,12 +137,12 @@ class FaceEncoder:
     parameters. ``error_px`` is the most one channel's quantisation may move a vertex, in
     pixels at the call's size, raised for a large face to what the landmark tracker resolves
     (:data:`TRACKER_RESOLUTION_SHARE`). With ``smoothing`` (the default) the channel values are
-    filtered over time before quantisation (:mod:`sender.channel_filter`): the tracker's
+    filtered over time before quantisation (:mod:`facewire.sender.channel_filter`): the tracker's
     jitter is most of what would otherwise be sent. With ``synthesis`` (the default) the
     tracked landmarks are moved to where the face the receiver draws matches the frame before
-    they are fitted (:mod:`sender.synthesis`). With ``edge`` (the default) each packet
+    they are fitted (:mod:`facewire.sender.synthesis`). With ``edge`` (the default) each packet
     carries the corrections that put the face's edge and surroundings where the frame shows
-    them (:mod:`sender.edge`); without, they stay zero.
+    them (:mod:`facewire.sender.edge`); without, they stay zero.
     """
 
     def __init__(

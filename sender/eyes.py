@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sender.detector import model_path, read_tflite
+from facewire.sender.detector import model_path, read_tflite
 
 INPUT_SIZE = 64
 OUTPUT_LAYER = "output_eyes_contours_and_brows"

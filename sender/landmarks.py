@@ -3,7 +3,7 @@
 Each frame the model sees a square, upright (roll-corrected) crop of the face. The crop comes
 from the BlazeFace detector on the first frame and after a loss, and from the previous
 frame's landmarks otherwise. Faces too small for the detector's whole-frame pass are looked
-for again in tiles (``sender.detector.TileSearch``), a few tiles per frame, so a video
+for again in tiles (``facewire.sender.detector.TileSearch``), a few tiles per frame, so a video
 finds a face down to ``min_face`` px wide within a few frames at a bounded cost per frame.
 
 Points are mapped back to image space: OpenCV pixel coordinates of the input frame (x right,
@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sender.detector import (
+from facewire.sender.detector import (
     Detection,
     FaceDetector,
     TileSearch,
@@ -28,8 +28,8 @@ from sender.detector import (
     model_path,
     read_tflite,
 )
-from sender.eyes import EyeRefiner
-from sender.smoothing import LandmarkSmoother
+from facewire.sender.eyes import EyeRefiner
+from facewire.sender.smoothing import LandmarkSmoother
 
 logger = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ class LandmarkTracker:
     tiles per frame while no face is tracked (None: all of them in one frame, for a still
     image); ``min_face=None`` turns the tile search off. ``smoother`` (optional) filters
     the returned points over time; the next crop always comes from the unfiltered points.
-    ``refine_eyes`` runs the eye model over both eye regions (``sender.eyes``; without it
+    ``refine_eyes`` runs the eye model over both eye regions (``facewire.sender.eyes``; without it
     the face model's eyes barely blink). :attr:`state` says what the last frame gave (one of
     ``STATES``).
     """

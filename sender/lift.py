@@ -15,14 +15,14 @@ control point displacement -> GDE RBFs -> a displacement of every vertex. Here:
    calibration frame put it on the mesh) is blended with its last one by confidence: a hidden
    marker holds, a doubtful one moves part way; in depth, the surface's confidence counts
    too (a grazing hit moves the depth less, a point off the mesh keeps its depth).
-4. The rig's GDEs (one per deform/mouth marker, ``models.gde``) spread those displacements
+4. The rig's GDEs (one per deform/mouth marker, ``facewire.models.gde``) spread those displacements
    over the mesh. Overlapping elements (the two lids of an eye, chin and lower lip) would
    add up and miss their own markers, so the control displacements are solved for first,
    from the small matrix of each element's weight at every marker's vertex: the field then
    passes through every marker exactly.
 
 :class:`MarkerFaceTracker` puts it behind the landmark tracker's interface for
-``sender.encoder.FaceEncoder``: landmarks for the session's first frame (the mesh and
+``facewire.sender.encoder.FaceEncoder``: landmarks for the session's first frame (the mesh and
 texture come from them), then a :class:`MarkerFit` per frame, whose dense displacement the
 encoder fits wires to.
 """
@@ -35,13 +35,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 
-from models.gde import GdeSet
-from models.mesh import FaceMesh
-from models.pose import Pose
-from models.raycast import RayCaster, orthographic_rays
-from models.rig import Rig, load_rig
-from sender.landmarks import Landmarks, LandmarkTracker
-from sender.markers import Markers, MarkerTracker
+from facewire.models.gde import GdeSet
+from facewire.models.mesh import FaceMesh
+from facewire.models.pose import Pose
+from facewire.models.raycast import RayCaster, orthographic_rays
+from facewire.models.rig import Rig, load_rig
+from facewire.sender.landmarks import Landmarks, LandmarkTracker
+from facewire.sender.markers import Markers, MarkerTracker
 
 logger = logging.getLogger(__name__)
 
@@ -201,7 +201,7 @@ class MarkerFaceTracker:
     frame and returns that frame's landmarks, from which the session mesh and texture are
     made; :meth:`begin` then takes the session mesh, and from there on :meth:`track` returns
     a :class:`MarkerFit` per frame (None when the markers are lost). :attr:`state` is the
-    marker tracker's (``sender.markers.STATES``).
+    marker tracker's (``facewire.sender.markers.STATES``).
     """
 
     def __init__(

@@ -6,12 +6,13 @@ vertices) as named 2D points with a confidence each.
 
 - Calibration, at the first frame with a face: the landmark tracker says roughly where each
   marker's vertex is, and the colours found there become the colour classes
-  (``sender.marker_colours``). Each marker's place on the face, the *layout*, is the point of
-  the landmarks' mesh under it (a ray cast, ``models.raycast``). Over the next few frames the
-  classes are read again from every marker found, so they settle on the clip's own colours.
+  (``facewire.sender.marker_colours``). Each marker's place on the face, the *layout*, is the
+  point of the landmarks' mesh under it (a ray cast, ``facewire.models.raycast``). Over the
+  next few frames the classes are read again from every marker found, so they settle on
+  the clip's own colours.
 - Every frame: pyramidal Lucas-Kanade carries each marker seen in the last frame to where it
-  should be now; from those, the head pose (``models.pose2d``, the layout's pose markers)
-  places the markers that were hidden, where the layout says they are plus the offset they
+  should be now; from those, the head pose (``facewire.models.pose2d``, the layout's pose
+  markers) places the markers that were hidden, where the layout says they are plus the offset they
   had when last seen. Blobs of each colour class are found around the face, a blob large
   enough for two with two predictions in it is split between them (a blink brings the lid
   markers together), and markers take blobs by an optimal assignment within a gate that
@@ -35,13 +36,13 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from models.mesh import FaceMesh, load_canonical
-from models.pose import Pose, estimate_pose
-from models.pose2d import estimate_pose_2d
-from models.raycast import RayCaster, orthographic_rays
-from models.rig import Rig, load_rig
-from sender.landmarks import Landmarks, LandmarkTracker, is_blank
-from sender.marker_colours import (
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.pose import Pose, estimate_pose
+from facewire.models.pose2d import estimate_pose_2d
+from facewire.models.raycast import RayCaster, orthographic_rays
+from facewire.models.rig import Rig, load_rig
+from facewire.sender.landmarks import Landmarks, LandmarkTracker, is_blank
+from facewire.sender.marker_colours import (
     MIN_AREA_FRACTION,
     MIN_MARKER_SATURATION,
     Blobs,

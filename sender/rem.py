@@ -1,6 +1,6 @@
 """REM patches, sender side: live texture for the eyes and the mouth's inside (seed 003).
 
-Each frame, every region of the session's :class:`~models.rem.RemLayout` is cut from the
+Each frame, every region of the session's :class:`~facewire.models.rem.RemLayout` is cut from the
 frame and warped into texture space through the mesh *as the receiver rebuilds it* (the
 quantised parameters of this frame): pasted into the texture and drawn with the same mesh, a
 patch puts back the pixels it came from, whatever error the geometry has there.
@@ -41,11 +41,11 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-from models.colour import ColourStats, reference_colour, to_hsv
-from models.rem import EYES, MOUTH_INTERIOR, SENT_REGIONS, RemLayout
-from protocol.constants import REM_CACHE
-from protocol.packets import RemPatch
-from sender.texture import UvRasteriser
+from facewire.models.colour import ColourStats, reference_colour, to_hsv
+from facewire.models.rem import EYES, MOUTH_INTERIOR, SENT_REGIONS, RemLayout
+from facewire.protocol.constants import REM_CACHE
+from facewire.protocol.packets import RemPatch
+from facewire.sender.texture import UvRasteriser
 
 logger = logging.getLogger(__name__)
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import cv2
 
-from protocol.clock import now_us
-from protocol.packets import (
+from facewire.protocol.clock import now_us
+from facewire.protocol.packets import (
     Bye,
     DeltaFrame,
     KeyFrame,
@@ -23,11 +23,11 @@ from protocol.packets import (
     RemPatch,
     Snapshot,
 )
-from protocol.transport import SenderEndpoint, TransportError
-from sender.capture import CapturedFrame, CaptureError
-from sender.encoder import FaceEncoder
-from sender.rem import BUDGET_KBPS as REM_BUDGET_KBPS
-from sender.snapshot_draft import draft
+from facewire.protocol.transport import SenderEndpoint, TransportError
+from facewire.sender.capture import CapturedFrame, CaptureError
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.rem import BUDGET_KBPS as REM_BUDGET_KBPS
+from facewire.sender.snapshot_draft import draft
 
 logger = logging.getLogger(__name__)
 

@@ -18,8 +18,8 @@ import logging
 import cv2
 import numpy as np
 
-from protocol.images import decode_image
-from protocol.packets import Snapshot
+from facewire.protocol.images import decode_image
+from facewire.protocol.packets import Snapshot
 
 logger = logging.getLogger(__name__)
 

@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-from models.mesh import FaceMesh
-from sender.texture import UvRasteriser
+from facewire.models.mesh import FaceMesh
+from facewire.sender.texture import UvRasteriser
 
 #: The flow is measured on a texture as wide as the face is pixels wide, or this many texels
 #: for a wider face, rounded up to a power of two: a large face costs no more than this.

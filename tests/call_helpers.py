@@ -1,10 +1,10 @@
 """Real calls for the recovery tests and benchmark.
 
 A sender encodes the bundled clip at its frame rate over CURVE on loopback; receivers run
-``receiver.session.run_receiver`` in their own processes (their own OpenGL context) and record
-MP4s. Loss is injected by :class:`LossyLink`, a link with a loss pattern that sits between the
-encoder and the real ``SenderEndpoint.publish``: everything after it (sockets, receiver,
-keyframe requests over the back channel) is the real call.
+``facewire.receiver.session.run_receiver`` in their own processes (their own OpenGL context)
+and record MP4s. Loss is injected by :class:`LossyLink`, a link with a loss pattern that
+sits between the encoder and the real ``SenderEndpoint.publish``: everything after it
+(sockets, receiver, keyframe requests over the back channel) is the real call.
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.clock import now_us
-from protocol.keys import write_keypair
-from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
-from protocol.transport import SenderEndpoint
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.session import SenderReport, run_sender, wait_until_ready
+from facewire.protocol.clock import now_us
+from facewire.protocol.keys import write_keypair
+from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
+from facewire.protocol.transport import SenderEndpoint
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.session import SenderReport, run_sender, wait_until_ready
 
 HOST = "127.0.0.1"
 JOIN_TIMEOUT_S = 60.0
@@ -82,7 +82,7 @@ class LossyLink:
 
 
 def _receiver_main(ports: tuple[int, int], output: str, options: dict, results: Any) -> None:
-    from receiver.session import run_receiver
+    from facewire.receiver.session import run_receiver
 
     try:
         report = run_receiver(HOST, *ports, output, join_timeout_s=JOIN_TIMEOUT_S, **options)
@@ -216,7 +216,7 @@ def wait_ready(endpoint: SenderEndpoint, receiver: ReceiverProcess) -> None:
 def reference_frames(snapshot: Snapshot, sent: list[tuple[int, bytes]]) -> dict[int, np.ndarray]:
     """seq -> the picture a receiver that lost nothing renders for that frame's packet (with
     the REM patches sent up to it)."""
-    from receiver.decoder import FaceDecoder
+    from facewire.receiver.decoder import FaceDecoder
 
     decoder = FaceDecoder(snapshot)
     try:

@@ -4,7 +4,7 @@ from collections.abc import Iterator
 import pytest
 import zmq
 
-from models.mesh import FaceMesh, load_canonical
+from facewire.models.mesh import FaceMesh, load_canonical
 
 
 @pytest.fixture(scope="session")

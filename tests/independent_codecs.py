@@ -175,7 +175,7 @@ def measure(
     from skimage.metrics import structural_similarity
 
     from facewire.quality import head_polygon
-    from sender.landmarks import LandmarkTracker
+    from facewire.sender.landmarks import LandmarkTracker
 
     inputs, fps = read_video(clip, frames)
     with tempfile.TemporaryDirectory() as tmp:

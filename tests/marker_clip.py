@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sender.capture import VideoSource, demo_clip_path
+from facewire.sender.capture import VideoSource, demo_clip_path
 
 TRUTH = Path(__file__).resolve().parent.parent / "sender" / "data" / "demo_clip_truth.npz"
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.constants import AUDIO_FRAME_SAMPLES, AUDIO_RATE
-from protocol.packets import AudioFrame, KeyFrame, PacketError, decode
-from receiver.audio import (
+from facewire.protocol.constants import AUDIO_FRAME_SAMPLES, AUDIO_RATE
+from facewire.protocol.packets import AudioFrame, KeyFrame, PacketError, decode
+from facewire.receiver.audio import (
     MIN_LATENCY_US,
     AudioPlayout,
     NullSink,
@@ -25,7 +25,7 @@ from receiver.audio import (
     mux_audio,
     read_audio,
 )
-from sender.audio import (
+from facewire.sender.audio import (
     AudioSender,
     AudioSettings,
     demo_speech_path,
@@ -33,7 +33,7 @@ from sender.audio import (
     open_track,
     sound_for,
 )
-from sender.capture import demo_clip_path
+from facewire.sender.capture import demo_clip_path
 
 FIXTURES = Path(__file__).parent / "fixtures" / "packets"
 
@@ -369,7 +369,7 @@ def _talking_clip(folder: Path) -> Path:
     audio track: a clip that speaks from its first frame, as a call often does."""
     import cv2
 
-    from sender.capture import VideoSource
+    from facewire.sender.capture import VideoSource
 
     path = folder / "talking.mp4"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (640, 480))
@@ -427,7 +427,7 @@ def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: s
 
 def test_a_looped_file_plays_its_sound_again() -> None:
     """``send --loop`` sends the file's sound again with its pictures, not once."""
-    from sender.audio import LoopedTrack
+    from facewire.sender.audio import LoopedTrack
 
     once = open_track(demo_speech_path())
     assert once is not None

@@ -26,7 +26,7 @@ from facewire.quality import read_frames
 from facewire.ratequality import envelope, quality_at, rate_for
 from facewire.rdplot import plot
 from facewire.rdreport import break_even, print_report
-from sender.capture import demo_clip_path
+from facewire.sender.capture import demo_clip_path
 
 FRAMES = 8
 RATES = (24, 64)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from models.blending import BLEND_FUNCTIONS, blend, resolve
+from facewire.models.blending import BLEND_FUNCTIONS, blend, resolve
 
 GROUPS = {"eyes": np.array([0, 1]), "mouth": np.array([2, 3]), "brows": np.array([4])}
 
@@ -65,8 +65,8 @@ def test_errors_name_the_bad_value(endpoints):
 
 
 def test_with_a_wire_deformer_only_the_grouped_features_lag():
-    from models.mesh import load_canonical
-    from models.wires import WireCurveSpec, WireDeformer
+    from facewire.models.mesh import load_canonical
+    from facewire.models.wires import WireCurveSpec, WireDeformer
 
     v = load_canonical().vertices
     w = WireDeformer(

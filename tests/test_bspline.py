@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from models import bspline
+from facewire.models import bspline
 
 
 def cox_de_boor(u: float, t: np.ndarray, i: int, p: int) -> float:

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.bundle import (
+from facewire.protocol.bundle import (
     FRAGMENT,
     FRAGMENT_HEADER,
     MAX_PARTIAL,
@@ -20,7 +20,7 @@ from protocol.bundle import (
     unpack,
     varint,
 )
-from protocol.packets import Heartbeat, PacketError
+from facewire.protocol.packets import Heartbeat, PacketError
 
 uint32 = st.integers(0, 2**32 - 1)
 elements = st.binary(min_size=1, max_size=300)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from facewire.loopback import Loopback
-from models.face_channels import LIPS, WIRE, pose_from_channels
-from protocol.packets import PacketError
-from receiver.decoder import FaceDecoder, SnapshotError
-from sender.capture import VideoSource, demo_clip_path
+from facewire.models.face_channels import LIPS, WIRE, pose_from_channels
+from facewire.protocol.packets import PacketError
+from facewire.receiver.decoder import FaceDecoder, SnapshotError
+from facewire.sender.capture import VideoSource, demo_clip_path
 
 # neutral, smile, surprise with a blink, talking. Blinks are left out of the marker check: the
 # clip's closed eye is a squashed open one, which the trackers read as half open
@@ -42,7 +42,7 @@ def tracked_call(clip: tuple[list, dict]) -> dict[str, dict[int, np.ndarray]]:
 
 
 def _call(clip: tuple[list, dict], synthesis: bool) -> dict[str, dict[int, np.ndarray]]:
-    from sender.encoder import FaceEncoder
+    from facewire.sender.encoder import FaceEncoder
 
     frames, truth = clip
     # No rate cap: these tests hold the coding to its error budget, frame by frame, and a
@@ -169,7 +169,7 @@ def test_a_lost_frame_holds_the_face_instead_of_snapping_to_neutral(clip) -> Non
     # The tracker finds nothing in a black frame in the middle of the smile. The receiver
     # keeps showing the smile (the last values, within the error budget), and the face
     # comes back with the next frame.
-    from sender.encoder import FaceEncoder
+    from facewire.sender.encoder import FaceEncoder
 
     frames, truth = clip
     blank = 62
@@ -190,7 +190,7 @@ def test_a_lost_frame_holds_the_face_instead_of_snapping_to_neutral(clip) -> Non
 
 
 def test_decoder_refuses_a_snapshot_of_another_rig(clip) -> None:
-    from sender.encoder import FaceEncoder
+    from facewire.sender.encoder import FaceEncoder
 
     frames, truth = clip
     encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))
@@ -208,7 +208,7 @@ def test_decoder_survives_empty_and_refuses_huge_images(clip) -> None:
     import struct
     import zlib
 
-    from sender.encoder import FaceEncoder
+    from facewire.sender.encoder import FaceEncoder
 
     frames, truth = clip
     encoder = FaceEncoder(int(truth["width"]), int(truth["height"]), float(truth["fps"]))

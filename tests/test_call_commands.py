@@ -25,8 +25,8 @@ from cli_call import (
 
 from facewire.call import summary
 from facewire.quality import read_frames, score_frames, track_all
-from receiver.session import ReceiverReport
-from sender.capture import demo_clip_path
+from facewire.receiver.session import ReceiverReport
+from facewire.sender.capture import demo_clip_path
 
 FRAMES = 120
 #: Mean face-region SSIM of a call's recording against the bundled clip, frame i against i.

@@ -8,14 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from models.camera import (
+from facewire.models.camera import (
     camera_step,
     corners_from_homography,
     frame_corners,
     homography_from_corners,
 )
-from models.face_channels import HYSTERESIS
-from sender.camera_motion import CameraTracker, person_mask
+from facewire.models.face_channels import HYSTERESIS
+from facewire.sender.camera_motion import CameraTracker, person_mask
 
 W, H = 352, 288
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"

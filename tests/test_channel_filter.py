@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.face_channels import HYSTERESIS, POSE_ROTATION, POSE_TRANSLATION, WIRE
-from sender.channel_filter import MAX_GAP_S, ChannelSmoother
+from facewire.models.face_channels import HYSTERESIS, POSE_ROTATION, POSE_TRANSLATION, WIRE
+from facewire.sender.channel_filter import MAX_GAP_S, ChannelSmoother
 
 FPS = 30.0
 STEPS = {POSE_ROTATION: 0.005, WIRE: 0.05}
@@ -85,8 +85,8 @@ def test_bad_steps_are_refused() -> None:
 def _encode(frames: list, smoothing: bool) -> tuple[int, list[float], list[float]]:
     """Bytes sent, and per frame the largest quantisation error (in steps) against what the
     sender meant and the sent translation z."""
-    from protocol.quant import dequantise
-    from sender.encoder import FaceEncoder
+    from facewire.protocol.quant import dequantise
+    from facewire.sender.encoder import FaceEncoder
 
     h, w = frames[0].image.shape[:2]
     # No rate caps: they would hold the unsmoothed call's values back and hide what it costs.
@@ -114,7 +114,7 @@ def _encode(frames: list, smoothing: bool) -> tuple[int, list[float], list[float
 
 
 def test_the_encoder_sends_less_and_keeps_the_budget() -> None:
-    from sender.capture import VideoSource, demo_clip_path
+    from facewire.sender.capture import VideoSource, demo_clip_path
 
     with VideoSource(demo_clip_path()) as video:
         frames = list(video.frames(limit=90))  # still, then head motion and a smile

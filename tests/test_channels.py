@@ -8,16 +8,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.channels import ChainBroken, ChannelDecoder, ChannelEncoder, ChannelSpec
-from protocol.constants import (
+from facewire.protocol.channels import ChainBroken, ChannelDecoder, ChannelEncoder, ChannelSpec
+from facewire.protocol.constants import (
     INT64_MAX,
     INT64_MIN,
     MAX_SEQ_STEP,
     MAX_TIME_RESIDUAL_MS,
     UINT32_MAX,
 )
-from protocol.packets import DeltaFrame, KeyFrame, PacketError, decode
-from protocol.rangecoder import Encoder, IntContexts, encode_sint, encode_uint
+from facewire.protocol.packets import DeltaFrame, KeyFrame, PacketError, decode
+from facewire.protocol.rangecoder import Encoder, IntContexts, encode_sint, encode_uint
 
 SPECS = [ChannelSpec("pose", 3, 0.01), ChannelSpec("wire", 8, 0.02)]
 FRAME_US = 33_333

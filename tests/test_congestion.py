@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
-from protocol.bundle import Report
-from protocol.congestion import (
+from facewire.protocol.bundle import Report
+from facewire.protocol.congestion import (
     CEILING_FACTOR,
     CEILING_HEADROOM_BPS,
     DECREASE,
@@ -19,7 +19,7 @@ from protocol.congestion import (
     START_RATE_BPS,
     RateController,
 )
-from protocol.datagram import IP_UDP_BYTES
+from facewire.protocol.datagram import IP_UDP_BYTES
 
 T0 = 100.0  # the sender's clock at the start, s
 FPS = 20  # datagrams a second: 5 in each report interval

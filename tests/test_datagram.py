@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.bundle import pack
-from protocol.datagram import (
+from facewire.protocol.bundle import pack
+from facewire.protocol.datagram import (
     DATAGRAM_HEADER,
     OVERHEAD,
     RECEIVER_TO_SENDER,
@@ -23,7 +23,7 @@ from protocol.datagram import (
     key_id_of,
     new_secret,
 )
-from protocol.packets import Heartbeat
+from facewire.protocol.packets import Heartbeat
 
 SEQ_MOD = 1 << 16
 FORGED = "authentication failed (forged, altered or another key)"

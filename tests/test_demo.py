@@ -15,8 +15,8 @@ from imaging import psnr
 
 from facewire.cli import main
 from facewire.quality import polygon_mask
-from receiver.recorder import crop_to
-from sender.capture import demo_clip_path
+from facewire.receiver.recorder import crop_to
+from facewire.sender.capture import demo_clip_path
 
 FRAMES = 45
 
@@ -206,9 +206,9 @@ def test_any_size_real_face(tmp_path: Path) -> None:
     assert len(rebuilt) == 30 and _read(out)[0].shape == (h + 1, w + 1, 3)
     assert len(_read(compare)) == 30 and cv2.imread(str(sheet)).shape[1] == 3 * w
     # The model moves only the face (the body is the still background): score the face.
-    from models.mesh import load_canonical
-    from sender.landmarks import LandmarkTracker
-    from sender.texture import face_hull_mask
+    from facewire.models.mesh import load_canonical
+    from facewire.sender.landmarks import LandmarkTracker
+    from facewire.sender.texture import face_hull_mask
 
     tracker, triangles = LandmarkTracker(), load_canonical().triangles
 

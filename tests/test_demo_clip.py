@@ -12,10 +12,10 @@ from imaging import psnr
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from models.mesh import load_canonical  # noqa: E402
-from models.pose import Pose  # noqa: E402
-from models.rig import load_rig  # noqa: E402
-from models.wires import WireDeformer  # noqa: E402
+from facewire.models.mesh import load_canonical  # noqa: E402
+from facewire.models.pose import Pose  # noqa: E402
+from facewire.models.rig import load_rig  # noqa: E402
+from facewire.models.wires import WireDeformer  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "sender" / "data"
 CLIP = DATA / "demo_clip.mp4"
@@ -102,7 +102,7 @@ def test_truth_is_consistent(truth, deformer):
 
 
 def test_rerendered_frames_match_the_clip(truth, clip, deformer):
-    from receiver.render import FaceRenderer
+    from facewire.receiver.render import FaceRenderer
 
     mesh = load_canonical()
     tex = cv2.imdecode(truth["texture_png"], cv2.IMREAD_COLOR)
@@ -122,7 +122,7 @@ def test_rerendered_frames_match_the_clip(truth, clip, deformer):
 
 
 def test_tracker_finds_the_face_at_the_pose_markers(truth, clip):
-    from sender.landmarks import LandmarkTracker
+    from facewire.sender.landmarks import LandmarkTracker
 
     tracker = LandmarkTracker()
     pose_idx = np.flatnonzero(truth["marker_roles"] == "pose")

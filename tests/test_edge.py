@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from models.edge import (
+from facewire.models.edge import (
     EDGE_POINTS,
     FADE_REACH,
     INNER_REACH,
@@ -17,7 +17,7 @@ from models.edge import (
     edge_points,
     outline_ring,
 )
-from models.surround import SurroundWarp
+from facewire.models.surround import SurroundWarp
 
 H, W = 240, 320
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -119,7 +119,7 @@ def test_a_hostile_correction_moves_the_picture_no_further_than_the_limit() -> N
 
 def meter(face_px: float = 80.0) -> tuple[SurroundWarp, object]:
     """The receiver's surroundings of a snapshot, and the sender's meter of the same."""
-    from sender.edge import EdgeMeter
+    from facewire.sender.edge import EdgeMeter
 
     return SurroundWarp(texture(), ellipse()), EdgeMeter(texture(), ellipse(), None, face_px)
 
@@ -188,9 +188,9 @@ def test_a_face_out_of_the_frame_gets_no_corrections() -> None:
 def _hair_moved(face: np.ndarray, d: tuple[float, float]) -> np.ndarray:
     """The photo with what lies around the face (hair, ears, collar) moved by ``d`` px and
     the face itself where it was: the head's surroundings moving on their own."""
-    from models.mesh import load_canonical
-    from sender.landmarks import LandmarkTracker
-    from sender.texture import face_hull_mask
+    from facewire.models.mesh import load_canonical
+    from facewire.sender.landmarks import LandmarkTracker
+    from facewire.sender.texture import face_hull_mask
 
     points = LandmarkTracker().track(face).points  # type: ignore[union-attr]
     hull = face_hull_mask(face.shape[:2], points, load_canonical().triangles).astype(np.uint8)
@@ -203,8 +203,8 @@ def _hair_moved(face: np.ndarray, d: tuple[float, float]) -> np.ndarray:
 def _call(first: np.ndarray, moved: np.ndarray, edge: bool) -> tuple[np.ndarray, np.ndarray]:
     """What the receiver shows after 20 frames of ``moved``, and the corrections it drew."""
     from facewire.loopback import Loopback
-    from sender.capture import CapturedFrame
-    from sender.encoder import FaceEncoder
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
 
     h, w = first.shape[:2]
     with Loopback(FaceEncoder(w, h, 30.0, edge=edge), CapturedFrame(0, first, 0)) as both:
@@ -216,9 +216,9 @@ def _call(first: np.ndarray, moved: np.ndarray, edge: bool) -> tuple[np.ndarray,
 def test_in_the_call_the_hair_around_the_face_goes_where_the_camera_saw_it(
     tmp_path: Path,
 ) -> None:
-    from models.mesh import load_canonical
-    from sender.landmarks import LandmarkTracker
-    from sender.texture import face_hull_mask
+    from facewire.models.mesh import load_canonical
+    from facewire.sender.landmarks import LandmarkTracker
+    from facewire.sender.texture import face_hull_mask
 
     face = cv2.imread(str(FIXTURE))
     moved = _hair_moved(face, (2.5, -2.0))

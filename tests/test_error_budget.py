@@ -5,9 +5,9 @@ from __future__ import annotations
 import cv2
 import pytest
 
-from models.face_channels import DEFAULT_ERROR_PX, channel_steps
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import TRACKER_RESOLUTION_SHARE, FaceEncoder
+from facewire.models.face_channels import DEFAULT_ERROR_PX, channel_steps
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import TRACKER_RESOLUTION_SHARE, FaceEncoder
 
 
 def _first_frame(size: tuple[int, int] | None = None) -> CapturedFrame:

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from models.mesh import FaceMesh
-from sender.capture import VideoSource, demo_clip_path
-from sender.eyes import (
+from facewire.models.mesh import FaceMesh
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.eyes import (
     EYE_REGION,
     EYE_REGION_LEFT,
     LEFT_CORNERS,
@@ -19,7 +19,7 @@ from sender.eyes import (
     EyeRefiner,
     eye_crop,
 )
-from sender.landmarks import LandmarkTracker
+from facewire.sender.landmarks import LandmarkTracker
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 LID_VERTICES = np.concatenate([EYE_REGION[LIDS], EYE_REGION_LEFT[LIDS]])

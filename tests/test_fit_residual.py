@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.fit_residual import FitResidual, rms_px
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.fit_residual import FitResidual, rms_px
 
 FRAMES = 40
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from models.gde import Expression, Gde, GdeDef, GdeSet, mouth_seam_edges, sample_evenly
-from models.mesh import load_canonical
+from facewire.models.gde import Expression, Gde, GdeDef, GdeSet, mouth_seam_edges, sample_evenly
+from facewire.models.mesh import load_canonical
 
 INNER = [78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 324, 318, 402, 317, 14, 87, 178, 88, 95]
 UPPER_LIP = [0, 37, 267, 13, 82, 312, 11, 12]
@@ -191,7 +191,7 @@ def test_from_rig_uses_plain_attributes(mesh):
 
 
 def test_bundled_rig(mesh):
-    from models.rig import load_rig
+    from facewire.models.rig import load_rig
 
     gs = GdeSet.from_rig(mesh, load_rig())
     assert len(gs) > 0 and all(len(g.anchors) <= 20 for g in gs.elements)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from models.homotopy import MouthRig, blend, cylindrical_frames, scaling_factors, sweep
-from models.mesh import load_canonical
+from facewire.models.homotopy import MouthRig, blend, cylindrical_frames, scaling_factors, sweep
+from facewire.models.mesh import load_canonical
 
 MARKERS = {"left": 291, "right": 61, "top": 0, "bottom": 17}
 CONTOURS = [
@@ -191,7 +191,7 @@ def test_from_rig_accepts_rig_or_lips(mesh):
 
 
 def test_bundled_rig(mesh):
-    from models.rig import load_rig
+    from facewire.models.rig import load_rig
 
     rig = MouthRig.from_rig(mesh, load_rig())
     assert np.array_equal(rig.deform(mesh.vertices, np.zeros((4, 3))), mesh.vertices)

@@ -21,8 +21,8 @@ import zmq
 from cli_call import Facewire, count_frames, free_ports, kill_all
 from transport_helpers import snapshot
 
-from models.face_channels import rig_hash
-from protocol.packets import Bye, Heartbeat, KeyFrame, SnapshotRequest, decode
+from facewire.models.face_channels import rig_hash
+from facewire.protocol.packets import Bye, Heartbeat, KeyFrame, SnapshotRequest, decode
 
 #: Peak memory the attacks may add to the receiver's (the README's bound).
 MAX_EXTRA_BYTES = 150 * 1024 * 1024

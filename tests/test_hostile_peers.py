@@ -18,9 +18,9 @@ import pytest
 import zmq
 from transport_helpers import SESSION, TIMEOUT_MS, Context, frame, join, rss_bytes, wait_until
 
-from protocol.constants import UINT32_MAX
-from protocol.packets import AudioFrame, Bye, Heartbeat, KeyFrame, Packet
-from protocol.transport import ReceiverEndpoint, SenderEndpoint
+from facewire.protocol.constants import UINT32_MAX
+from facewire.protocol.packets import AudioFrame, Bye, Heartbeat, KeyFrame, Packet
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 WAIT_S = TIMEOUT_MS / 1000
 
@@ -216,7 +216,7 @@ def test_the_senders_own_new_session_still_asks_for_a_rejoin(
     call: tuple[SenderEndpoint, ReceiverEndpoint],
 ) -> None:
     """The session's own connection naming another session is the sender starting anew."""
-    from protocol.transport import RejoinNeeded
+    from facewire.protocol.transport import RejoinNeeded
 
     sender, receiver = call
     sender.publish(KeyFrame(9, 12, 50, 0, b"x"))
@@ -226,11 +226,11 @@ def test_the_senders_own_new_session_still_asks_for_a_rejoin(
 
 
 def test_refusals_are_logged_at_most_once_a_second(caplog: pytest.LogCaptureFixture) -> None:
-    from protocol.hostile import Refusals
+    from facewire.protocol.hostile import Refusals
 
     now = [100.0]
     refusals = Refusals(lambda: now[0])
-    with caplog.at_level("WARNING", logger="protocol.hostile"):
+    with caplog.at_level("WARNING", logger="facewire.protocol.hostile"):
         for _ in range(1000):  # a flood within one second: one line
             refusals.refuse("ignored a Heartbeat")
             now[0] += 0.0009

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.images import (
+from facewire.protocol.images import (
     MAX_JPEG_SEGMENTS,
     PNG_SIGNATURE,
     ImageError,

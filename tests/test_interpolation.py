@@ -10,13 +10,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from facewire.loopback import Loopback
-from models.camera import corners_from_homography, homography_from_corners
-from models.face_channels import LIPS as LIPS_CHANNEL
-from models.face_channels import WIRE
-from models.pose import Pose
-from protocol.channels import FrameValues
-from receiver.interpolation import Painter, blend_camera, blend_pose, blend_state
-from sender.capture import VideoSource, demo_clip_path
+from facewire.models.camera import corners_from_homography, homography_from_corners
+from facewire.models.face_channels import LIPS as LIPS_CHANNEL
+from facewire.models.face_channels import WIRE
+from facewire.models.pose import Pose
+from facewire.protocol.channels import FrameValues
+from facewire.receiver.interpolation import Painter, blend_camera, blend_pose, blend_state
+from facewire.sender.capture import VideoSource, demo_clip_path
 
 NEUTRAL, BLINK = 0, 140  # the clip's frame 140: surprise, eyes shut, jaw open
 LIDS = ((159, 145), (386, 374))  # upper and lower lid of each eye
@@ -34,7 +34,7 @@ def _mouth_gap(vertices: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def frames():
     """A decoder of a real session and the values of the neutral and the blink frame."""
-    from sender.encoder import FaceEncoder
+    from facewire.sender.encoder import FaceEncoder
 
     with VideoSource(demo_clip_path()) as video:
         clip = list(video.frames(limit=BLINK + 1))
@@ -124,7 +124,7 @@ def test_the_inner_lips_blend_on_the_mouths_curve(frames) -> None:
 def test_the_edge_corrections_move_evenly_between_frames(frames) -> None:
     from dataclasses import replace
 
-    from models.edge import EDGE_POINTS
+    from facewire.models.edge import EDGE_POINTS
 
     decoder, a, b = frames
     painter = Painter(decoder)

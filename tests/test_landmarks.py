@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sender.detector import Detection, FaceDetector, largest_first, ssd_anchors, tile_grid
-from sender.landmarks import (
+from facewire.sender.detector import Detection, FaceDetector, largest_first, ssd_anchors, tile_grid
+from facewire.sender.landmarks import (
     ACQUIRED,
     BLANK,
     LOST,

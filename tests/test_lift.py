@@ -9,14 +9,14 @@ import pytest
 from marker_clip import clip_frames, truth
 
 from facewire.loopback import Loopback
-from models.mesh import FaceMesh, load_canonical
-from models.pose import Pose
-from models.rig import load_rig
-from models.wires import WireDeformer
-from sender.capture import CapturedFrame
-from sender.encoder import FaceEncoder
-from sender.lift import MarkerFaceTracker, MarkerLifter, landmarks_on_markers
-from sender.markers import HIDDEN, SEEN, Markers
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.pose import Pose
+from facewire.models.rig import load_rig
+from facewire.models.wires import WireDeformer
+from facewire.sender.capture import CapturedFrame
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.lift import MarkerFaceTracker, MarkerLifter, landmarks_on_markers
+from facewire.sender.markers import HIDDEN, SEEN, Markers
 
 T = truth()
 RIG = load_rig()

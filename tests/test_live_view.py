@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from browser import look_at, unavailable
 
-from receiver.live_figures import LiveFigures
-from receiver.live_view import (
+from facewire.receiver.live_figures import LiveFigures
+from facewire.receiver.live_view import (
     BOUNDARY,
     MAX_VIEWERS,
     LiveView,
@@ -28,7 +28,7 @@ from receiver.live_view import (
     parse_view_address,
     waiting_still,
 )
-from receiver.window import NoDisplay, Window
+from facewire.receiver.window import NoDisplay, Window
 
 SIZE = (640, 480)
 BROWSER = unavailable()

@@ -15,8 +15,8 @@ import numpy as np
 from marker_clip import clip_frames, truth
 
 from facewire.cli import main
-from sender.capture import demo_clip_path
-from sender.markers import MarkerTracker
+from facewire.sender.capture import demo_clip_path
+from facewire.sender.markers import MarkerTracker
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 T = truth()

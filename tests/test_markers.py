@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from marker_clip import clip_frames, paint_out, recolour, truth
 
-from sender.markers import (
+from facewire.sender.markers import (
     ACQUIRED,
     BLANK,
     HIDDEN,

@@ -9,8 +9,8 @@ import time
 import numpy as np
 from transport_helpers import TIMEOUT_MS, frame, join, snapshot
 
-from protocol.packets import RemPatch
-from protocol.transport import ReceiverEndpoint, SenderEndpoint
+from facewire.protocol.packets import RemPatch
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 
 def test_a_reference_never_overtakes_the_image_it_names() -> None:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.bundle import (
+from facewire.protocol.bundle import (
     FRAGMENT,
     FRAGMENT_HEADER,
     MAX_DATAGRAM,
@@ -26,8 +26,8 @@ from protocol.bundle import (
     pack,
     unpack,
 )
-from protocol.datagram import IP_UDP_BYTES, OVERHEAD, RECEIVER_TO_SENDER, Opener
-from protocol.media_path import (
+from facewire.protocol.datagram import IP_UDP_BYTES, OVERHEAD, RECEIVER_TO_SENDER, Opener
+from facewire.protocol.media_path import (
     BUCKET_S,
     DATAGRAM_COST,
     DEFAULT_BUDGET_BPS,
@@ -37,7 +37,7 @@ from protocol.media_path import (
     SenderMediaPath,
     frames_per_datagram,
 )
-from protocol.packets import (
+from facewire.protocol.packets import (
     AudioFrame,
     Bye,
     DeltaFrame,

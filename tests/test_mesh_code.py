@@ -7,10 +7,10 @@ from collections import deque
 import numpy as np
 import pytest
 
-from models.mesh import load_canonical
-from protocol import mesh_code
-from protocol.packets import PacketError, Snapshot, decode
-from protocol.rangecoder import Decoder, IntContexts, decode_sint
+from facewire.models.mesh import load_canonical
+from facewire.protocol import mesh_code
+from facewire.protocol.packets import PacketError, Snapshot, decode
+from facewire.protocol.rangecoder import Decoder, IntContexts, decode_sint
 
 CANONICAL = load_canonical()
 

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from facewire.loopback import Loopback
-from models.mesh import load_canonical
-from models.mouth_opening import LIPS_SIZE, MouthOpening
-from models.rig import load_rig
-from models.wires import WireDeformer
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
+from facewire.models.mesh import load_canonical
+from facewire.models.mouth_opening import LIPS_SIZE, MouthOpening
+from facewire.models.rig import load_rig
+from facewire.models.wires import WireDeformer
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
 
 UPPER, LOWER = 13, 14  # the inner lips' centres: the top and bottom markers of the contour
 OUTER_LOWER = 17  # the lower lip's outer edge, below LOWER

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import tomllib
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -158,6 +159,24 @@ def test_the_build_warns_of_nothing_of_ours(tmp_path: Path) -> None:
     assert "editable" in r.stdout
     said = r.stdout + r.stderr
     assert "Warning" not in said and "!!" not in said, said
+    # One import package: the parts install inside facewire, nothing else at the top.
+    wheel = next((tmp_path / "dist").glob("facewire-*-py3-none-any.whl"))
+    with zipfile.ZipFile(wheel) as archive:
+        top = {name.split("/")[0] for name in archive.namelist()}
+        assert "facewire/protocol/packets.py" in archive.namelist()
+        assert "facewire/models/data/canonical_face_mesh.obj" in archive.namelist()
+    assert top == {"facewire", wheel.name.split("-py3")[0] + ".dist-info"}, top
+    pip = [python, "-m", "pip", "install", "--quiet", "--no-deps", str(wheel)]
+    subprocess.run(pip, check=True, timeout=300)
+    where = (
+        "import importlib.util as u\n"
+        "print([bool(u.find_spec(n)) for n in ('facewire.sender', 'facewire.receiver', "
+        "'facewire.protocol', 'facewire.models', 'sender', 'receiver', 'protocol', 'models')])\n"
+    )
+    found = subprocess.run(
+        [python, "-c", where], cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
+    assert found.stdout.strip() == str([True] * 4 + [False] * 4), found.stdout + found.stderr
 
 
 def test_an_image_build_sends_what_the_dockerfile_copies_and_no_more(tmp_path: Path) -> None:
@@ -229,3 +248,16 @@ def test_make_demo_installs_what_running_needs_and_make_test_the_dev_tools(
     assert any("[dev]" in line for line in test), test
     dev = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert {"pytest", "mypy", "ruff"} <= {re.split(r"[<>=\[]", d)[0] for d in dev["dev"]}
+
+
+def test_the_parts_are_imported_only_inside_facewire() -> None:
+    # `import protocol` would load a second copy of a part beside facewire.protocol (its own
+    # constants and classes), and break where another package has that name.
+    short = re.compile(r"^\s*(from|import)\s+(sender|receiver|protocol|models)\b", re.M)
+    found = []
+    for folder in ("facewire", "sender", "receiver", "protocol", "models", "tests", "benchmarks",
+                   "tools"):  # fmt: skip
+        for path in (ROOT / folder).rglob("*.py"):
+            found += [f"{path.relative_to(ROOT)}: {m.group(0).strip()}"
+                      for m in short.finditer(path.read_text())]  # fmt: skip
+    assert not found, found

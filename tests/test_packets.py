@@ -13,9 +13,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from protocol.constants import MAX_PACKET_BYTES
-from protocol.images import ImageError, check_image, image_size
-from protocol.packets import (
+from facewire.protocol.constants import MAX_PACKET_BYTES
+from facewire.protocol.images import ImageError, check_image, image_size
+from facewire.protocol.packets import (
     Bye,
     DeltaFrame,
     Heartbeat,

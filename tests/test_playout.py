@@ -12,8 +12,8 @@ from collections.abc import Iterable
 import numpy as np
 import pytest
 
-from protocol.channels import FrameValues
-from receiver.playout import (
+from facewire.protocol.channels import FrameValues
+from facewire.receiver.playout import (
     AUTO_MAX_US,
     AUTO_START_US,
     MAX_SLEW,
@@ -25,7 +25,7 @@ from receiver.playout import (
     Show,
     make_playout,
 )
-from receiver.smoothness import display_figures
+from facewire.receiver.smoothness import display_figures
 
 FRAME_US = 33_333
 START_US = 5_000_000  # sender clock of frame 0

@@ -29,9 +29,9 @@ from call_helpers import (
 )
 from test_recovery import face_box
 
-from protocol.packets import DeltaFrame, KeyFrame, decode
-from protocol.transport import SenderEndpoint
-from sender.session import run_sender, wait_until_ready
+from facewire.protocol.packets import DeltaFrame, KeyFrame, decode
+from facewire.protocol.transport import SenderEndpoint
+from facewire.sender.session import run_sender, wait_until_ready
 
 FRAMES = 120
 #: Larger than the link's jitter (at most 100 ms) and a busy machine's hiccups.
@@ -72,8 +72,8 @@ class JitteryLink:
 def _receiver(
     ports: tuple[int, int], output: str, keys: dict, display_fps: float | None, results: Any
 ) -> None:
-    from receiver.playout import PlayoutSettings
-    from receiver.session import ReceiverReport, RenderedFrame, run_receiver
+    from facewire.receiver.playout import PlayoutSettings
+    from facewire.receiver.session import ReceiverReport, RenderedFrame, run_receiver
 
     seen: list[tuple[int, int, float]] = []
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from models.mesh import load_canonical
-from models.pose import FRONTAL, Pose, estimate_pose, residual_rms
+from facewire.models.mesh import load_canonical
+from facewire.models.pose import FRONTAL, Pose, estimate_pose, residual_rms
 
 logger = logging.getLogger(__name__)
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -101,7 +101,7 @@ def test_frontal_canonical_mesh(canonical: np.ndarray) -> None:
 
 def test_pose_of_astronaut_landmarks(canonical: np.ndarray) -> None:
     cv2 = pytest.importorskip("cv2")
-    from sender.landmarks import LandmarkTracker
+    from facewire.sender.landmarks import LandmarkTracker
 
     img = cv2.imread(str(FIXTURE))
     tracker = LandmarkTracker()

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.channels import ChannelDecoder, ChannelEncoder, ChannelSpec
+from facewire.protocol.channels import ChannelDecoder, ChannelEncoder, ChannelSpec
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 
@@ -295,9 +295,9 @@ def _hex_block(after: str) -> bytes:
 
 
 def test_worked_datagram_in_the_doc_is_what_the_code_seals() -> None:
-    from protocol.bundle import Report, pack
-    from protocol.datagram import SENDER_TO_RECEIVER, Opener, Sealer
-    from protocol.packets import Heartbeat
+    from facewire.protocol.bundle import Report, pack
+    from facewire.protocol.datagram import SENDER_TO_RECEIVER, Opener, Sealer
+    from facewire.protocol.packets import Heartbeat
 
     secret = bytes(range(32))
     sealer = Sealer(secret, SENDER_TO_RECEIVER, 7)

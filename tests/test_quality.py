@@ -26,7 +26,7 @@ from facewire.quality import (
     ssim,
     ssim_map,
 )
-from sender.landmarks import LandmarkTracker
+from facewire.sender.landmarks import LandmarkTracker
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 

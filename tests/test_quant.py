@@ -8,8 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from protocol.constants import MAX_CHANNEL_VALUE
-from protocol.quant import dequantise, quantise
+from facewire.protocol.constants import MAX_CHANNEL_VALUE
+from facewire.protocol.quant import dequantise, quantise
 
 values = hnp.arrays(np.float64, st.integers(1, 20), elements=st.floats(-1e3, 1e3))
 

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.rangecoder import (
+from facewire.protocol.rangecoder import (
     Context,
     Decoder,
     Encoder,

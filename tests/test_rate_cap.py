@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from facewire.loopback import Loopback
-from protocol.packets import KeyFrame
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.rate_cap import EDGE_KBPS, LOW_S, SLACK_STEPS, START_S, RateCap
+from facewire.protocol.packets import KeyFrame
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.rate_cap import EDGE_KBPS, LOW_S, SLACK_STEPS, START_S, RateCap
 
 FPS = 30.0
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from models.mesh import FaceMesh
-from models.pose import Pose
-from models.pose2d import estimate_pose_2d
-from models.raycast import RayCaster, orthographic_rays
+from facewire.models.mesh import FaceMesh
+from facewire.models.pose import Pose
+from facewire.models.pose2d import estimate_pose_2d
+from facewire.models.raycast import RayCaster, orthographic_rays
 
 TRUTH = Path(__file__).resolve().parent.parent / "sender" / "data" / "demo_clip_truth.npz"
 

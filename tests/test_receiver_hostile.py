@@ -18,14 +18,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from models.face_channels import POSE_ROTATION, POSE_SCALE, pose_from_channels
-from models.pose import FRONTAL
-from protocol.channels import ChainBroken, ChannelEncoder, ChannelSpec
-from protocol.packets import PacketError, Snapshot
-from receiver.decoder import MAX_VERTEX_PX, FaceDecoder, SnapshotError
-from receiver.session import ReceiverReport, _decode
-from sender.capture import VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
+from facewire.models.face_channels import POSE_ROTATION, POSE_SCALE, pose_from_channels
+from facewire.models.pose import FRONTAL
+from facewire.protocol.channels import ChainBroken, ChannelEncoder, ChannelSpec
+from facewire.protocol.packets import PacketError, Snapshot
+from facewire.receiver.decoder import MAX_VERTEX_PX, FaceDecoder, SnapshotError
+from facewire.receiver.session import ReceiverReport, _decode
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
 
 
 @pytest.fixture(scope="module")

@@ -11,14 +11,14 @@ from typing import Any
 import numpy as np
 from call_helpers import CTX, HOST, JOIN_TIMEOUT_S, Keys, read_video, start_sender
 
-from protocol.transport import SenderEndpoint
-from sender.session import run_sender, wait_until_ready
+from facewire.protocol.transport import SenderEndpoint
+from facewire.sender.session import run_sender, wait_until_ready
 
 STOP_AFTER = 45  # rendered pictures
 
 
 def _receiver(ports: tuple[int, int], output: str, keys: dict[str, Any], results: Any) -> None:
-    from receiver.session import ReceiverReport, RenderedFrame, run_receiver
+    from facewire.receiver.session import ReceiverReport, RenderedFrame, run_receiver
 
     seen: list[tuple[int, int, tuple[int, ...], float, float, int, int]] = []
 

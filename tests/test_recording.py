@@ -9,8 +9,8 @@ import pytest
 from cli_call import count_frames
 
 from facewire.quality import read_frames, ssim
-from receiver.recorder import SMALL_PIXELS, Mp4Recorder
-from receiver.recording import BackgroundRecorder
+from facewire.receiver.recorder import SMALL_PIXELS, Mp4Recorder
+from facewire.receiver.recording import BackgroundRecorder
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 

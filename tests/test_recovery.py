@@ -29,8 +29,8 @@ from call_helpers import (
     wait_ready,
 )
 
-from protocol.packets import Snapshot
-from protocol.transport import SenderEndpoint
+from facewire.protocol.packets import Snapshot
+from facewire.protocol.transport import SenderEndpoint
 
 FRAMES = 240
 #: Frames a receiver on a busy machine may show late (half a second).

@@ -14,19 +14,19 @@ from call_helpers import HOST, Keys, ReceiverProcess, start_sender, wait_ready
 from imaging import save
 
 from facewire.loopback import Loopback
-from models.colour import adapt, reference_colour, to_bgr, to_hsv
-from models.mesh import FaceMesh, load_canonical
-from models.rem import EYES, MOUTH_INTERIOR, RemLayout
-from models.rig import load_rig
-from protocol.channels import ChannelEncoder, ChannelSpec
-from protocol.constants import REM_CACHE
-from protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
-from protocol.transport import SenderEndpoint
-from receiver.decoder import FaceDecoder
-from receiver.rem import RemMerger
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.rem import (
+from facewire.models.colour import adapt, reference_colour, to_bgr, to_hsv
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.rem import EYES, MOUTH_INTERIOR, RemLayout
+from facewire.models.rig import load_rig
+from facewire.protocol.channels import ChannelEncoder, ChannelSpec
+from facewire.protocol.constants import REM_CACHE
+from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
+from facewire.protocol.transport import SenderEndpoint
+from facewire.receiver.decoder import FaceDecoder
+from facewire.receiver.rem import RemMerger
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.rem import (
     BUDGET_KBPS,
     CHANGE_FRACTION,
     LIMIT_KBPS,
@@ -34,8 +34,8 @@ from sender.rem import (
     RemEncoder,
     encode_webp,
 )
-from sender.session import run_sender
-from sender.texture import UvRasteriser
+from facewire.sender.session import run_sender
+from facewire.sender.texture import UvRasteriser
 
 # --- layout ---------------------------------------------------------------------------------
 
@@ -85,7 +85,7 @@ def test_eye_boxes_hold_the_rig_polygons_with_a_feathered_edge(
 def test_an_open_mouth_shows_the_inside_rectangle(mesh: FaceMesh, layout: RemLayout) -> None:
     """Rendered with the layout's mesh, the mouth opened: what shows between the lips is the
     mouth's own rectangle of texture, not stretched lip."""
-    from receiver.render import FaceRenderer
+    from facewire.receiver.render import FaceRenderer
 
     texture = np.full((256, 256, 3), 120, np.uint8)
     rows, cols = layout.boxes[MOUTH_INTERIOR].texture_slices
@@ -473,8 +473,13 @@ def test_a_blink_still_shows_when_the_geometry_is_coded_otherwise(
       (the lids 11 px apart where the truth has 3.9);
     - at 0.8 the mouth's inside, waiting longer, could not pay for its patch at the second
       blink (frame 140), and both eyes waited behind it (11.5 px)."""
-    import sender.encoder as encoder_module
-    from models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_SHARE, POSE_TRANSLATION
+    import facewire.sender.encoder as encoder_module
+    from facewire.models.face_channels import (
+        POSE_ROTATION,
+        POSE_SCALE,
+        POSE_SHARE,
+        POSE_TRANSLATION,
+    )
 
     plain = encoder_module.channel_steps
 

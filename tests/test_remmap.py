@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
+from facewire.models.rem import REGION_NAMES
 from facewire.remmap import GRID, MAP_SCALE
-from models.rem import REGION_NAMES
-from sender.capture import demo_clip_path
+from facewire.sender.capture import demo_clip_path
 
 
 def test_rem_map_writes_the_map_and_the_figures(tmp_path: Path, capsys) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from imaging import H, W, gradient_background, save
 
-from receiver.render import FaceRenderer
+from facewire.receiver.render import FaceRenderer
 
 T = 512
 
@@ -215,8 +215,8 @@ def test_a_renderer_dropped_without_closing_breaks_no_other(mesh):
 _CHILD = """
 import json, sys
 import numpy as np
-from models.mesh import load_canonical
-from receiver.render import FaceRenderer
+from facewire.models.mesh import load_canonical
+from facewire.receiver.render import FaceRenderer
 m = load_canonical()
 img = m.vertices * np.array([14.0, -14.0, -14.0]) + [320.0, 250.0, 500.0]
 with FaceRenderer(640, 480, m.triangles, m.uvs, np.full((64, 64, 3), 90, np.uint8)) as r:

@@ -6,9 +6,9 @@ import pytest
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import points_in_poly
 
-from models.mesh import data_path, load_canonical
-from models.rig import FEATURES, load_rig, parse_rig
-from models.subdivision import loop_subdivide
+from facewire.models.mesh import data_path, load_canonical
+from facewire.models.rig import FEATURES, load_rig, parse_rig
+from facewire.models.subdivision import loop_subdivide
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from facewire.protocol.sframe import RoomKey
 from facewire.relay import Relay, RelayConfig, free_port
-from protocol.sframe import RoomKey
 from tests.cli_call import Facewire, count_frames, kill_all, run_facewire
 
 pytest.importorskip("nats")

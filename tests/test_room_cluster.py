@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from facewire.protocol.sframe import RoomKey
 from facewire.relay import Relay, RelayConfig, free_port
 from facewire.room_link import RoomLink
-from protocol.sframe import RoomKey
 from tests.cli_call import Facewire, kill_all
 
 pytest.importorskip("nats")

@@ -12,9 +12,9 @@ import pytest
 
 from facewire.cli import main
 from facewire.loopback import Loopback
-from sender.capture import CapturedFrame, VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.scene_cut import SceneCut, another_face
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.scene_cut import SceneCut, another_face
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 BEFORE, AFTER = 30, 150  # frames of the bundled clip, then of the other scene (5 s: its session

@@ -16,9 +16,9 @@ import pytest
 import zmq
 from transport_helpers import SESSION, TIMEOUT_MS, Context, frame, join, snapshot
 
-import protocol.transport
-from protocol.constants import LATE_FRAME_MS, LATE_FRAMES
-from protocol.packets import (
+from facewire.protocol import transport
+from facewire.protocol.constants import LATE_FRAME_MS, LATE_FRAMES
+from facewire.protocol.packets import (
     DeltaFrame,
     Heartbeat,
     KeyFrame,
@@ -27,8 +27,8 @@ from protocol.packets import (
     SnapshotRequest,
     decode,
 )
-from protocol.transport import ReceiverEndpoint, SenderEndpoint
-from receiver.lateness import LateFrames
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
+from facewire.receiver.lateness import LateFrames
 
 
 @pytest.fixture
@@ -136,7 +136,7 @@ def test_no_copies_without_a_report_and_none_after_the_hold(
     sender.publish(frame(1))
     assert frames_received(receiver, until_copies=0) == [frame(1)]
     assert sender.bytes_sent["spare"] == 0 and receiver.stats.copies == 0
-    monkeypatch.setattr(protocol.transport, "SPARE_PATH_HOLD_S", 0.3)
+    monkeypatch.setattr(transport, "SPARE_PATH_HOLD_S", 0.3)
     open_second_path(sender, receiver)
     sender.publish(frame(2))
     assert frames_received(receiver, until_copies=1) == [frame(2)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from protocol.sframe import (
+from facewire.protocol.sframe import (
     REPLAY_WINDOW,
     Header,
     Opener,

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from models.mesh import load_canonical
-from sender.landmarks import ACQUIRED, TRACKED, LandmarkTracker
-from sender.smoothing import LandmarkSmoother, OneEuroFilter, alpha, face_scale
+from facewire.models.mesh import load_canonical
+from facewire.sender.landmarks import ACQUIRED, TRACKED, LandmarkTracker
+from facewire.sender.smoothing import LandmarkSmoother, OneEuroFilter, alpha, face_scale
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 FPS = 30.0

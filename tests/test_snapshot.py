@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from protocol import mesh_code
-from protocol.images import decode_image, image_size
-from sender.capture import CapturedFrame
-from sender.encoder import MAX_TEXTURE_SIZE, MIN_TEXTURE_SIZE, FaceEncoder, texture_size
+from facewire.protocol import mesh_code
+from facewire.protocol.images import decode_image, image_size
+from facewire.sender.capture import CapturedFrame
+from facewire.sender.encoder import MAX_TEXTURE_SIZE, MIN_TEXTURE_SIZE, FaceEncoder, texture_size
 
 ASTRONAUT = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 
@@ -39,7 +39,7 @@ def test_a_small_face_gets_a_small_texture_and_both_images_are_webp() -> None:
 
 
 def test_a_qcif_snapshot_keeps_its_budget_and_both_ends_share_the_mesh() -> None:
-    from protocol.packets import decode
+    from facewire.protocol.packets import decode
 
     face = cv2.imread(str(ASTRONAUT))
     frame = cv2.resize(face, (176, 144), interpolation=cv2.INTER_AREA)

@@ -21,12 +21,12 @@ import pytest
 from cli_call import Facewire, all_end_well, free_ports
 
 from facewire.onlink import RECEIVE_ADDRESS, Link, unavailable
-from protocol.images import decode_image
-from protocol.packets import Snapshot
-from sender.capture import VideoSource, demo_clip_path
-from sender.encoder import FaceEncoder
-from sender.session import start_session
-from sender.snapshot_draft import draft, is_draft
+from facewire.protocol.images import decode_image
+from facewire.protocol.packets import Snapshot
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.session import start_session
+from facewire.sender.snapshot_draft import draft, is_draft
 
 NO_LINK = unavailable(shaping=True)
 
@@ -56,7 +56,7 @@ def test_the_draft_is_the_snapshot_with_smaller_images(snapshot: Snapshot) -> No
 
 
 def test_the_decoder_takes_the_full_images_and_refuses_others(snapshot: Snapshot) -> None:
-    from receiver.decoder import FaceDecoder
+    from facewire.receiver.decoder import FaceDecoder
 
     small = draft(snapshot)
     assert small is not None

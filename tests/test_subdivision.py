@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from models.mesh import FaceMesh, load_canonical
-from models.subdivision import loop_subdivide
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.subdivision import loop_subdivide
 
 
 def euler(mesh: FaceMesh) -> int:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from models.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp
+from facewire.models.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp
 
 H, W = 360, 480
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -166,7 +166,7 @@ def test_a_box_of_the_warp_is_that_part_of_the_whole_warp() -> None:
 
 
 def test_person_mask_finds_a_real_face() -> None:
-    from models.person import person_mask
+    from facewire.models.person import person_mask
 
     face = cv2.imread(str(FIXTURE))
     canvas = cv2.resize(noise_image(), (960, 540))
@@ -188,11 +188,11 @@ def _frame(face: np.ndarray, angle: float, shift: tuple[float, float]) -> np.nda
 
 def test_hair_follows_the_head_and_no_old_face_shows(tmp_path: Path) -> None:
     from facewire.loopback import Loopback
-    from models.mesh import load_canonical
-    from sender.capture import CapturedFrame
-    from sender.encoder import FaceEncoder
-    from sender.landmarks import LandmarkTracker
-    from sender.texture import face_hull_mask
+    from facewire.models.mesh import load_canonical
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
+    from facewire.sender.landmarks import LandmarkTracker
+    from facewire.sender.texture import face_hull_mask
 
     face = cv2.imread(str(FIXTURE))
     first, moved = _frame(face, 0.0, (0.0, 0.0)), _frame(face, 7.0, (26.0, 10.0))

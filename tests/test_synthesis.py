@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from sender.capture import CapturedFrame
-from sender.encoder import FaceEncoder
-from sender.landmarks import LandmarkTracker
-from sender.synthesis import MAX_MOVE, FaceSynthesis
-from sender.texture import UvRasteriser
+from facewire.sender.capture import CapturedFrame
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.landmarks import LandmarkTracker
+from facewire.sender.synthesis import MAX_MOVE, FaceSynthesis
+from facewire.sender.texture import UvRasteriser
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 
@@ -22,7 +22,7 @@ FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 def photo():
     """The photograph, its tracked face and a synthesis whose texture was unwrapped from it
     (as the sender's snapshot is)."""
-    from models.mesh import load_canonical
+    from facewire.models.mesh import load_canonical
 
     mesh = load_canonical()
     image = cv2.imread(str(FIXTURE))
@@ -71,7 +71,7 @@ def test_a_face_out_of_place_is_moved_back(photo, roll_deg):
     assert np.median(after) < 0.35 * np.median(before)
     # Nearly every vertex comes closer, the outline's too: seen too obliquely to be matched,
     # they move as their seen neighbours do (left in place, they stayed 2.8 px off).
-    from models.mesh import load_canonical
+    from facewire.models.mesh import load_canonical
 
     assert np.mean(after < before - 0.1) > 0.95
     outline = load_canonical().outline

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from imaging import H, W, gradient_background, psnr, save
 
-from receiver.render import FaceRenderer
-from sender.texture import (
+from facewire.receiver.render import FaceRenderer
+from facewire.sender.texture import (
     UvRasteriser,
     face_hull_mask,
     fill_invalid,
@@ -197,7 +197,9 @@ def test_rejects_bad_inputs(rasteriser):
 
 
 def test_real_face_round_trip(rasteriser, mesh):
-    landmarks = pytest.importorskip("sender.landmarks", reason="landmark tracker not landed")
+    landmarks = pytest.importorskip(
+        "facewire.sender.landmarks", reason="landmark tracker not landed"
+    )
     face = cv2.imread(str(FIXTURE))
     if face is None:
         pytest.skip(f"fixture {FIXTURE} missing")

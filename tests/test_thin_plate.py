@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.thin_plate import ThinPlate
+from facewire.models.thin_plate import ThinPlate
 
 
 def test_the_spline_passes_through_its_controls() -> None:

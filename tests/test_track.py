@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from facewire.cli import main
+from facewire.models.pose import Pose
+from facewire.sender.capture import demo_clip_path
+from facewire.sender.landmarks import LandmarkTracker
 from facewire.track import yaw_pitch_roll
-from models.pose import Pose
-from sender.capture import demo_clip_path
-from sender.landmarks import LandmarkTracker
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 TRUTH = Path(__file__).resolve().parent.parent / "sender" / "data" / "demo_clip_truth.npz"
@@ -309,7 +309,7 @@ def test_yaw_pitch_roll_conventions(mesh: Any, axis: str, k: int) -> None:
     # tip towards image right (yaw), down (pitch), the eyes' line anticlockwise (roll).
     from scipy.spatial.transform import Rotation
 
-    from models.pose import FRONTAL
+    from facewire.models.pose import FRONTAL
 
     turn = Rotation.from_euler(axis, 20.0, degrees=True).as_matrix()
     pose = Pose(FRONTAL @ turn, 10.0, np.array([320.0, 240.0, 0.0]))

@@ -9,8 +9,8 @@ import pytest
 import zmq
 from transport_helpers import JPEG, TIMEOUT_MS, Context, FakeClock, frame, join, snapshot
 
-from protocol.constants import HEARTBEAT_INTERVAL_S, PEER_TIMEOUT_S
-from protocol.packets import (
+from facewire.protocol.constants import HEARTBEAT_INTERVAL_S, PEER_TIMEOUT_S
+from facewire.protocol.packets import (
     Bye,
     DeltaFrame,
     Heartbeat,
@@ -20,7 +20,7 @@ from protocol.packets import (
     RemPatch,
     Snapshot,
 )
-from protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
 
 Update = KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot
 

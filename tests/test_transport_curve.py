@@ -10,8 +10,8 @@ import zmq
 from transport_helpers import TIMEOUT_MS, Context, frame, join, keypairs, snapshot, wait_until
 from zmq.utils.monitor import recv_monitor_message
 
-from protocol.packets import KeyFrame, KeyframeRequest
-from protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
+from facewire.protocol.packets import KeyFrame, KeyframeRequest
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
 
 Keys = dict[str, tuple[Path, Path]]
 
@@ -85,7 +85,7 @@ def test_receiver_with_unlisted_key_receives_nothing(
 
 def curve_dealer(context: Context, sender: SenderEndpoint, keys: Keys, name: str | None):
     """A raw DEALER (CURVE client with ``name``'s keys, or plain) and its monitor socket."""
-    from protocol.keys import load_keypair, load_public_key
+    from facewire.protocol.keys import load_keypair, load_public_key
 
     dealer = context.socket(zmq.DEALER)
     dealer.setsockopt(zmq.LINGER, 0)

@@ -9,7 +9,7 @@ import pytest
 import zmq.auth
 
 from facewire.cli import main
-from protocol.keys import load_keypair, load_public_key, load_public_keys, write_keypair
+from facewire.protocol.keys import load_keypair, load_public_key, load_public_keys, write_keypair
 
 
 def test_keys_command_writes_a_zmq_certificate_pair(

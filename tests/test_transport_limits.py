@@ -17,9 +17,9 @@ import pytest
 import zmq
 from transport_helpers import JPEG, TIMEOUT_MS, Context, frame, join, rss_bytes, snapshot
 
-from protocol.constants import PROBE_INTERVAL_MS
-from protocol.packets import Heartbeat, KeyFrame, SnapshotRequest
-from protocol.transport import ReceiverEndpoint, SenderEndpoint
+from facewire.protocol.constants import PROBE_INTERVAL_MS
+from facewire.protocol.packets import Heartbeat, KeyFrame, SnapshotRequest
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 MB = 1024 * 1024
@@ -27,7 +27,7 @@ MB = 1024 * 1024
 # A receiver that joins, says so, and never reads again (until its stdin closes).
 STALLED_RECEIVER = """
 import sys
-from protocol.transport import ReceiverEndpoint
+from facewire.protocol.transport import ReceiverEndpoint
 with ReceiverEndpoint("127.0.0.1", int(sys.argv[1]), int(sys.argv[2]), plain=True) as r:
     r.fetch_snapshot(10000)
     print("joined", flush=True)
@@ -37,7 +37,7 @@ with ReceiverEndpoint("127.0.0.1", int(sys.argv[1]), int(sys.argv[2]), plain=Tru
 # A peer that asks for the snapshot again and again and never reads a reply.
 SNAPSHOT_FLOOD = """
 import sys, zmq
-from protocol.packets import SnapshotRequest
+from facewire.protocol.packets import SnapshotRequest
 ctx = zmq.Context()
 dealer = ctx.socket(zmq.DEALER)
 dealer.linger = 0

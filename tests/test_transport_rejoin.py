@@ -8,8 +8,13 @@ from pathlib import Path
 import pytest
 from transport_helpers import TIMEOUT_MS, Context, frame, join, keypairs, rejoin, snapshot
 
-from protocol.packets import Heartbeat, KeyFrame
-from protocol.transport import ReceiverEndpoint, RejoinNeeded, SenderEndpoint, TransportError
+from facewire.protocol.packets import Heartbeat, KeyFrame
+from facewire.protocol.transport import (
+    ReceiverEndpoint,
+    RejoinNeeded,
+    SenderEndpoint,
+    TransportError,
+)
 
 Keys = dict[str, tuple[Path, Path]]
 

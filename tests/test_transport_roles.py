@@ -14,8 +14,13 @@ import pytest
 import zmq
 from transport_helpers import TIMEOUT_MS, Context, frame, join, keypairs, snapshot, wait_until
 
-from protocol.packets import Heartbeat, KeyFrame, KeyframeRequest
-from protocol.transport import ReceiverEndpoint, RejoinNeeded, SenderEndpoint, TransportError
+from facewire.protocol.packets import Heartbeat, KeyFrame, KeyframeRequest
+from facewire.protocol.transport import (
+    ReceiverEndpoint,
+    RejoinNeeded,
+    SenderEndpoint,
+    TransportError,
+)
 
 Keys = dict[str, tuple[Path, Path]]
 

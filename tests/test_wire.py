@@ -15,8 +15,8 @@ import pytest
 from transport_helpers import TIMEOUT_MS, frame, join, keypairs, snapshot
 
 from facewire import wire
-from protocol.packets import KeyFrame, MediaKey
-from protocol.transport import ReceiverEndpoint, SenderEndpoint
+from facewire.protocol.packets import KeyFrame, MediaKey
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 
 class CountingRelay:

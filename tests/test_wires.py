@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from models import bspline
-from models.mesh import load_canonical
-from models.wires import WireCurveSpec, WireDeformer, falloff
+from facewire.models import bspline
+from facewire.models.mesh import load_canonical
+from facewire.models.wires import WireCurveSpec, WireDeformer, falloff
 
 LIP = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291)
 BROW = (70, 63, 105, 66, 107)
@@ -228,7 +228,7 @@ def test_from_control_points_and_from_rig_agree(canonical):
 
 
 def test_bundled_rig_if_present(canonical):
-    rig_mod = pytest.importorskip("models.rig")
+    rig_mod = pytest.importorskip("facewire.models.rig")
     w = WireDeformer.from_rig(canonical, rig_mod.load_rig())
     p = random_params(w, np.random.default_rng(2), scale=0.1)
     np.testing.assert_array_equal(w.deform(w.rest_params()), canonical)
@@ -261,7 +261,7 @@ def test_rank_deficient_system_returns_the_least_change_solution(caplog):
     p = w.rest_params()
     p[0] = 1.7
     p[w.q_slices[0]] = np.random.default_rng(4).normal(scale=0.2, size=12)
-    with caplog.at_level("WARNING", logger="models.wires"):
+    with caplog.at_level("WARNING", logger="facewire.models.wires"):
         got = w.fit(w.deform(p))
     assert w.rank == w.n_params - 1
     assert "rank deficient (12 of 13)" in caplog.text

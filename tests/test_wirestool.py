@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from facewire import wirestool
-from models.mesh import load_canonical, load_obj, save_obj
-from models.rig import load_rig
-from models.wires import WireDeformer
+from facewire.models.mesh import load_canonical, load_obj, save_obj
+from facewire.models.rig import load_rig
+from facewire.models.wires import WireDeformer
 
 
 @pytest.fixture(scope="module")

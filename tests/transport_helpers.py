@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import zmq
 
-from protocol.keys import write_keypair
-from protocol.packets import KeyFrame, Snapshot
-from protocol.transport import ReceiverEndpoint, SenderEndpoint
+from facewire.protocol.keys import write_keypair
+from facewire.protocol.packets import KeyFrame, Snapshot
+from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 TIMEOUT_MS = 5000
 #: A JPEG header (SOI, a 16 x 16 frame header, EOI): packets check image headers, and the

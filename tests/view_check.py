@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from facewire.quality import frame_scores, read_frames, region_masks, track_all
-from sender.capture import demo_clip_path
+from facewire.sender.capture import demo_clip_path
 
 #: Face-region SSIM of the page's picture against the clip frame it looks most like.
 #: Measured on Chromium's screenshots of a loopback call: 0.71 and 0.73; a flat grey picture

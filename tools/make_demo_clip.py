@@ -37,14 +37,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from models.blending import blend, smoothstep  # noqa: E402
-from models.mesh import FaceMesh, load_canonical  # noqa: E402
-from models.pose import Pose, estimate_pose  # noqa: E402
-from models.rig import Rig, load_rig  # noqa: E402
-from models.wires import WireDeformer  # noqa: E402
-from receiver.render import FaceRenderer  # noqa: E402
-from sender.landmarks import LandmarkTracker  # noqa: E402
-from sender.texture import UvRasteriser, make_background  # noqa: E402
+from facewire.models.blending import blend, smoothstep  # noqa: E402
+from facewire.models.mesh import FaceMesh, load_canonical  # noqa: E402
+from facewire.models.pose import Pose, estimate_pose  # noqa: E402
+from facewire.models.rig import Rig, load_rig  # noqa: E402
+from facewire.models.wires import WireDeformer  # noqa: E402
+from facewire.receiver.render import FaceRenderer  # noqa: E402
+from facewire.sender.landmarks import LandmarkTracker  # noqa: E402
+from facewire.sender.texture import UvRasteriser, make_background  # noqa: E402
 
 WIDTH, HEIGHT, FPS, N_FRAMES = 640, 480, 30, 300
 FACE_WIDTH = 200.0  # px, target width of the face (landmark extent) in the clip

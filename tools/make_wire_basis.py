@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from models.face_channels import WireBasis
-from models.mesh import data_path, load_canonical
-from models.pose import estimate_pose
-from models.rig import load_rig
-from models.wires import WireDeformer
-from sender.capture import VideoSource, demo_clip_path
-from sender.landmarks import LandmarkTracker
+from facewire.models.face_channels import WireBasis
+from facewire.models.mesh import data_path, load_canonical
+from facewire.models.pose import estimate_pose
+from facewire.models.rig import load_rig
+from facewire.models.wires import WireDeformer
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.landmarks import LandmarkTracker
 
 
 def clip_params(path: Path, limit: int | None) -> np.ndarray:

@@ -16,8 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from models.mesh import FaceMesh, load_canonical
-from models.rig import Rig, load_rig
+from facewire.models.mesh import FaceMesh, load_canonical
+from facewire.models.rig import Rig, load_rig
 
 logger = logging.getLogger(__name__)
 
