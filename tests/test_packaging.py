@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -177,6 +178,25 @@ def test_the_build_warns_of_nothing_of_ours(tmp_path: Path) -> None:
         [python, "-c", where], cwd=tmp_path, capture_output=True, text=True, timeout=60
     )
     assert found.stdout.strip() == str([True] * 4 + [False] * 4), found.stdout + found.stderr
+    # The installed wheel runs the demo outside the checkout. Its dependencies come from this
+    # environment's site-packages (a path entry after the venv's own, so the wheel's facewire
+    # is the one imported), not from the network.
+    ask = "import site; print(site.getsitepackages()[0])"
+    site = Path(subprocess.check_output([python, "-c", ask], text=True).strip())
+    deps = [p for p in sys.path if p.endswith("site-packages")]
+    (site / "facewire-test-deps.pth").write_text("\n".join(deps) + "\n")
+    env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "PYTHONPATH": ""}
+    demo = subprocess.run(
+        [str(venv / "bin" / "facewire"), "demo", "--frames", "20", "--no-sound",
+         "--stats", "demo.json"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert demo.returncode == 0, demo.stdout + demo.stderr
+    stats = json.loads((tmp_path / "demo.json").read_text())
+    assert stats["frames_out"] == 20 and (tmp_path / "demo-output.mp4").stat().st_size > 0
+    where = [python, "-c", "import facewire.receiver.session as m; print(m.__file__)"]
+    imported = subprocess.check_output(where, cwd=tmp_path, env=env, text=True).strip()
+    assert Path(imported).is_relative_to(site), imported
 
 
 def test_an_image_build_sends_what_the_dockerfile_copies_and_no_more(tmp_path: Path) -> None:
