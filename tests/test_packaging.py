@@ -120,9 +120,12 @@ def test_secret_keys_stay_out_of_git() -> None:
     assert r.returncode == 0, r.stdout + r.stderr
 
 
-def test_the_build_warns_of_nothing_of_ours(tmp_path: Path) -> None:
+def test_the_wheel_is_one_package_that_runs_the_demo_and_the_build_warns_of_nothing(
+    tmp_path: Path,
+) -> None:
     """`make demo`'s editable install, and a wheel, built by the setuptools pyproject.toml
-    asks for: no deprecation (project.license as a table) and no editable-install warning."""
+    asks for: no deprecation (project.license as a table) and no editable-install warning;
+    the wheel holds facewire alone, and installed in a fresh venv it runs the demo."""
     project = tmp_path / "facewire"
     project.mkdir()
     for name in ("pyproject.toml", "README.md"):
