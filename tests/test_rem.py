@@ -164,6 +164,28 @@ def webp_patch(layout: RemLayout, region: str, seq: int, colour: tuple[int, int,
     return RemPatch(seq, region, "webp", encode_webp(image, 70), 0.0, 0.0, 0.0)
 
 
+def test_a_receiver_that_draws_nothing_for_a_while_keeps_each_regions_newest_patch(
+    merger: RemMerger, layout: RemLayout
+) -> None:
+    # Two seconds of patches while no frame is drawn (a receiver catching up, the snapshot's
+    # full images decoding): many more than MAX_PENDING, every region's last one among them.
+    last = {}
+    for seq in range(101, 161, 2):
+        region = (MOUTH_INTERIOR, "eye_left", "eye_right")[seq % 3]
+        colour = (seq, 255 - seq, 40)
+        assert merger.add(webp_patch(layout, region, seq, colour))
+        last[region] = colour
+    assert merger.due(160)
+    counts = merger.counts()
+    assert counts["dropped"] == {} and counts["waiting"] == 0
+    assert sum(counts["applied"].values()) + counts["replaced"] == 30
+    for region, colour in last.items():
+        rows, cols = layout.boxes[region].texture_slices
+        inside = layout.boxes[region].texture_alpha > 0.99
+        drawn = merger.texture[rows, cols][inside].mean(axis=0)
+        assert np.abs(drawn - colour).max() < 12, (region, drawn, colour)
+
+
 def test_patches_it_cannot_use_are_counted_and_dropped(
     merger: RemMerger, layout: RemLayout
 ) -> None:
@@ -580,7 +602,7 @@ def test_the_receive_loop_counts_and_drops_bad_patches(tmp_path) -> None:
     # Every good patch arrived and was applied, or waited for a frame when the call ended
     # (the hostile ones took the patches' budget, so the last good ones came with the Bye).
     assert rem["received"] == sender.patches + 1 + 4
-    assert sum(rem["applied"].values()) + rem["waiting"] == sender.patches + 1 > 1
+    assert sum(rem["applied"].values()) + rem["replaced"] + rem["waiting"] == sender.patches + 1 > 1
     assert sum(rem["applied"].values()) > rem["waiting"]
     assert report["malformed"] == 0
 
