@@ -3,7 +3,8 @@
 A participant sends its own stream once, as a two-party sender would (the same encoder, the
 same bundles), and receives everyone else's, one decoder per peer. Three threads: the sender's
 loop (capture, track, encode, publish), the NATS link's event loop, and this one, which opens
-and decodes what comes (and records it, one file per peer).
+and decodes what comes (and records it, one file per peer); each peer's sound plays on a
+thread of its own, mixed into the one sound device (facewire/room_sound.py).
 """
 
 from __future__ import annotations
@@ -131,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     from facewire.relay import Relay, RelayConfig, free_port
     from facewire.room_link import MAX_RECONNECT_ATTEMPTS, RECONNECT_WAIT_S, RoomLink, _hidden
     from facewire.room_peer import RoomReceiver
+    from facewire.room_sound import RoomSound
 
     subjects.check_name(args.room, "room")
     subjects.check_name(args.name, "participant")
@@ -148,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
     receiver: RoomReceiver | None = None
     sending: _SendingSide | None = None
     view: Any = None
+    sound: RoomSound | None = None
     tell = say
     with StopSignal() as stop:
         try:
@@ -169,11 +172,12 @@ def run(args: argparse.Namespace) -> int:
                 relay = Relay(RelayConfig(port=free_port())).start()
                 servers = [relay.config.client_url()]
                 tell(f"no --server: a relay on loopback; others join with --server {servers[0]}")
+            sound = RoomSound(tell)
             receiver = RoomReceiver(
                 key, args.name,
                 get_snapshot=lambda name: link.get_snapshot(name) if link else None,
                 publish=lambda subject, data: link.publish(subject, data) if link else None,
-                sealer=sealer, notify=tell, record_dir=record_dir, gallery=gallery,
+                sealer=sealer, notify=tell, record_dir=record_dir, gallery=gallery, sound=sound,
                 on_keyframe_request=lambda request: (
                     sending.endpoint.request_keyframe(request)
                     if sending is not None and sending.endpoint is not None else None
@@ -207,6 +211,8 @@ def run(args: argparse.Namespace) -> int:
                 sending.done.wait(5.0)
             if receiver is not None:
                 receiver.close()
+            if sound is not None:
+                sound.close()
             if link is not None:
                 link.close()
             if relay is not None:
