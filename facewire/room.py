@@ -46,8 +46,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument(
         "--server", metavar="URL", action="append", default=[],
-        help="a relay, nats://TOKEN@HOST:PORT (again for each node of a cluster); "
-        "none: an embedded relay on loopback",
+        help="a relay, nats://TOKEN@HOST:PORT or tls://TOKEN@HOST:PORT (again for each node "
+        "of a cluster); none: an embedded relay on loopback",
+    )  # fmt: skip
+    p.add_argument(
+        "--tls-ca", metavar="FILE",
+        help="trust relays whose TLS certificate this CA (PEM) signed, e.g. the relay's own "
+        "self-signed HOST.crt; the connection is then TLS",
     )  # fmt: skip
     _add_source_arguments(p)
     add_sound_arguments(p)
@@ -141,6 +146,11 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.key} is room {key.room}'s key, not room {args.room}'s")
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
+    tls = None
+    if args.tls_ca:
+        from facewire.tls import client_context
+
+        tls = client_context(args.tls_ca)
     record_dir = Path(args.record_dir) if args.record_dir else None
     if record_dir is not None:
         record_dir.mkdir(parents=True, exist_ok=True)
@@ -183,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
                     if sending is not None and sending.endpoint is not None else None
                 ),
             )  # fmt: skip
-            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell)
+            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell, tls)
             link.start()
             tell(f"joined room {args.room} as {args.name} through {link.connected_url}")
             if args.receive_only:
