@@ -99,7 +99,8 @@ def test_each_voice_is_heard_and_recorded_with_its_face(
 ) -> None:
     """Alice and Bob speak (two clips, two voices); Carol only listens and records each. Each
     recording carries that one's voice, not the other's, beside the same frames it was sent
-    with; everyone played everyone's sound (into the null sink: no device here)."""
+    with; everyone played everyone's sound (mixed into the device, or a null sink where there is
+    none, as on this machine)."""
     voices = {"alice": talking_voice(), "bob": talking_voice(swapped=True)}
     record = tmp_path / "carol-hears"
     alice = bob = carol = None
@@ -119,13 +120,18 @@ def test_each_voice_is_heard_and_recorded_with_its_face(
             assert person.wait(300) == 0, person.output()
     finally:
         kill_all(alice, bob, carol)
-    assert sum("no sound device" in line for line in carol.lines) == 1, carol.output()
+    # Said once for the room, not once a peer (a machine with a device says nothing).
+    no_device = sum("no sound device" in line for line in carol.lines)
+    assert no_device <= 1, carol.output()
     heard = _stats(tmp_path, "carol")["peers"]
     matches = {}
     for name, voice in voices.items():
         (other,) = set(voices) - {name}
         sound = heard[name]["sound"]
-        assert sound["played"] > 0 and sound["sink"] == "no sound device", (name, sound)
+        assert sound["played"] > 0, (name, sound)
+        assert (
+            sound["sink"] == "no sound device" if no_device else sound["sink"].endswith(", mixed")
+        ), (name, sound)
         # The recording starts with the first frame Carol decoded: the voice from there on.
         start = heard[name]["recorded_from"] * AUDIO_RATE // 30
         recorded = read_audio(record / f"{name}.mp4")
