@@ -19,6 +19,7 @@ from typing import Any
 
 from facewire.protocol import subjects
 from facewire.protocol.media_path import DEFAULT_BUDGET_BPS
+from facewire.protocol.sender_keys import SenderKeys, load_peers
 from facewire.protocol.sframe import RoomKey, Sealer, new_kid
 
 logger = logging.getLogger(__name__)
@@ -42,7 +43,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--name", required=True, help="this participant's name in the room")
     p.add_argument(
         "--key", metavar="FILE", required=True,
-        help="the room's secret (facewire keys --room NAME makes it)",
+        help="the room's secret (facewire keys --room NAME makes it), or, with --peer, this "
+        "participant's CURVE secret key (facewire keys: NAME.key_secret)",
+    )  # fmt: skip
+    p.add_argument(
+        "--peer", metavar="FILE", action="append", default=[],
+        help="with a CURVE --key: a peer's public key, NAME.key (NAME is that peer's name in "
+        "the room), or a folder of them; again for each. Only they hear this participant, and "
+        "only they are heard",
     )  # fmt: skip
     p.add_argument(
         "--server", metavar="URL", action="append", default=[],
@@ -76,8 +84,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 class _SendingSide:
     """The sender's loop in a thread; what ended it is kept for the main thread."""
 
-    def __init__(self, args: argparse.Namespace, link: Any, key: RoomKey, sealer: Sealer,
-                 stop: Any, tell: Any) -> None:  # fmt: skip
+    def __init__(self, args: argparse.Namespace, link: Any, key: RoomKey | SenderKeys,
+                 sealer: Sealer, stop: Any, tell: Any) -> None:  # fmt: skip
         self.args, self.link, self.key, self.sealer = args, link, key, sealer
         self.stop, self.tell = stop, tell
         self.endpoint: Any = None
@@ -141,9 +149,17 @@ def run(args: argparse.Namespace) -> int:
 
     subjects.check_name(args.room, "room")
     subjects.check_name(args.name, "participant")
-    key = RoomKey.load(args.key)
-    if key.room != args.room:
-        raise ValueError(f"{args.key} is room {key.room}'s key, not room {args.room}'s")
+    key: RoomKey | SenderKeys
+    if args.peer:
+        key = SenderKeys(args.room, args.name, args.key, load_peers(args.peer))
+        sealer = Sealer(key.own_key, key.kid)
+    else:
+        if "secret-key" in _head(args.key):
+            raise ValueError(f"{args.key} is a CURVE secret key: name the peers with --peer")
+        key = RoomKey.load(args.key)
+        if key.room != args.room:
+            raise ValueError(f"{args.key} is room {key.room}'s key, not room {args.room}'s")
+        sealer = Sealer(key.base_key(args.name), new_kid(args.name))
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
     tls = None
@@ -154,7 +170,6 @@ def run(args: argparse.Namespace) -> int:
     record_dir = Path(args.record_dir) if args.record_dir else None
     if record_dir is not None:
         record_dir.mkdir(parents=True, exist_ok=True)
-    sealer = Sealer(key.base_key(args.name), new_kid(args.name))
     relay: Relay | None = None
     link: RoomLink | None = None
     receiver: RoomReceiver | None = None
@@ -195,6 +210,10 @@ def run(args: argparse.Namespace) -> int:
             )  # fmt: skip
             link = RoomLink(servers, args.room, args.name, receiver.deliver, tell, tls)
             link.start()
+            if isinstance(key, SenderKeys):  # the boxes are in the bucket before any media
+                key.fetch = link.get_entry
+                for box, sealed in key.boxes().items():
+                    link.put_entry(box, sealed)
             tell(f"joined room {args.room} as {args.name} through {link.connected_url}")
             if args.receive_only:
                 tell("receiving only; leaving once those who came have all left")
@@ -235,6 +254,16 @@ def run(args: argparse.Namespace) -> int:
     if args.stats:
         Path(args.stats).write_text(json.dumps(stats, indent=1))
     return 0
+
+
+def _head(path: str) -> str:
+    """The start of a key file, to tell a CURVE key from a room's secret ("" if unreadable:
+    the room key's own error says why)."""
+    try:
+        with open(path, errors="replace") as f:
+            return f.read(4096)
+    except OSError:
+        return ""
 
 
 def _stats(args: argparse.Namespace, servers: list[str], link: Any, receiver: Any,

@@ -108,15 +108,23 @@ class RoomLink:
         self._loop.call_soon_threadsafe(self._publish, subject, data)
 
     def put_snapshot(self, data: bytes) -> None:
-        self._call(self._kv.put(self.name, data))
+        self.put_entry(self.name, data)
+
+    def put_entry(self, key: str, data: bytes) -> None:
+        """Put ``data`` in the room's bucket under ``key`` (a snapshot, a sealed key box)."""
+        self._call(self._kv.put(key, data))
 
     def get_snapshot(self, name: str) -> bytes | None:
         """``name``'s sealed snapshot; None when the bucket has none, or cannot say now (a
         cluster electing the bucket's leader after a node died, a reconnection)."""
+        return self.get_entry(name)
+
+    def get_entry(self, key: str) -> bytes | None:
+        """The room's bucket's entry ``key``; None as for :meth:`get_snapshot`."""
         try:
-            return self._call(self._get(name), SNAPSHOT_TIMEOUT_S)
+            return self._call(self._get(key), SNAPSHOT_TIMEOUT_S)
         except Exception as exc:
-            logger.info("%s's snapshot: %s", name, str(exc) or type(exc).__name__)
+            logger.info("the bucket's %s: %s", key, str(exc) or type(exc).__name__)
             return None
 
     def delete_snapshot(self) -> None:

@@ -38,6 +38,7 @@ from facewire.protocol.packets import (
     Snapshot,
     decode,
 )
+from facewire.protocol.sender_keys import KeyUnavailable, SenderKeys
 from facewire.protocol.sframe import Header, Opener, RoomKey, Sealer, SFrameError, kid_is_of
 
 if TYPE_CHECKING:
@@ -265,7 +266,7 @@ class RoomReceiver:
 
     def __init__(
         self,
-        key: RoomKey,
+        key: RoomKey | SenderKeys,
         name: str,
         get_snapshot: Callable[[str], bytes | None],
         publish: Callable[[str, bytes], None],
@@ -377,9 +378,15 @@ class RoomReceiver:
         if now - self.asked.get(sender, -SNAPSHOT_RETRY_S) < SNAPSHOT_RETRY_S:
             return None
         self.asked[sender] = now
+        try:
+            base_key = self.key.base_key(sender, kid)
+        except SFrameError as exc:  # a peer's key this one has no box for (sender_keys.py)
+            self.locked[sender] = now
+            self._rejected(sender, exc)
+            return None
         if peer is not None:
             self._drop(peer, "restarted")
-        self.opener.add_key(kid, self.key.base_key(sender))
+        self.opener.add_key(kid, base_key)
         sealed = self.get_snapshot(sender)
         if sealed is None:
             logger.info("%s sends but has no snapshot in the room's bucket yet", sender)
@@ -464,7 +471,7 @@ class RoomReceiver:
             if not self.opener.knows(kid):
                 if not kid_is_of(kid, sender):
                     raise SFrameError(f"KID {kid:#x} is not {sender}'s")
-                self.opener.add_key(kid, self.key.base_key(sender))
+                self.opener.add_key(kid, self.key.base_key(sender, kid))
             metadata = self.key.metadata(sender, CONTROL + self.name.encode())
             packet = decode(self.opener.open(data, metadata))
         except (SFrameError, PacketError) as exc:
@@ -477,7 +484,12 @@ class RoomReceiver:
     def _rejected(self, sender: str, exc: Exception) -> None:
         self.rejected[sender] += 1
         logger.debug("from %s: %s", sender, exc)
-        if sender not in self.told and "authenticate" in str(exc):
+        if sender in self.told:
+            return
+        if isinstance(exc, KeyUnavailable):
+            self.told.add(sender)
+            self.notify(str(exc))
+        elif "authenticate" in str(exc):
             self.told.add(sender)
             self.notify(
                 f"{sender}'s messages do not open with this room key: is --key the key of "
