@@ -248,6 +248,8 @@ def run(args: argparse.Namespace) -> int:
                 relay.close()
             if view is not None:
                 view.close()
+    if receiver is not None and receiver.finish_errors:
+        raise receiver.finish_errors[0]  # a recording that could not be finished
     stats = _stats(args, servers, link, receiver, sending, _hidden)
     seen = ", ".join(f"{n} {p['frames']} frames" for n, p in stats["peers"].items())
     say(f"left room {args.room}: {seen or 'no one came'}")
