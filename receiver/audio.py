@@ -22,6 +22,7 @@ import logging
 import os
 import tempfile
 import threading
+import time
 import wave
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -85,6 +86,9 @@ TRUSTED_AFTER = 3
 MAX_WAIT_US = 5_000_000
 #: A stopping receiver waits this long for the sound's thread, s.
 CLOSE_WAIT_S = 1.0
+#: A sender that said bye has its buffered sound played out for at most this long, s (no
+#: step is due further ahead than MAX_WAIT_US).
+PLAY_OUT_S = MAX_WAIT_US / 1e6
 #: Silence for a pause is written this many samples at a time (bounded memory), one second.
 SILENCE_CHUNK = AUDIO_RATE
 
@@ -542,6 +546,16 @@ class AudioPlayout:
 
     # --- the end ---------------------------------------------------------------------------
 
+    def play_out(self, timeout_s: float = PLAY_OUT_S) -> None:
+        """Wait until what is buffered has been played (or ``timeout_s``): looked at once a
+        step (the play thread's notifications are for itself)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self._stop or not (self._buffer or self._decoded):
+                    return
+            time.sleep(FRAME_US / 1e6)
+
     def close(self) -> None:
         """Stop playing (what is still buffered is dropped) and close the sink."""
         with self._lock:
@@ -678,8 +692,11 @@ class CallSound:
         fps: float,
         notify: Callable[[str], None],
         device: bool = True,
+        sink: AudioSink | None = None,
     ) -> None:
-        sink, self._no_device = open_sink(device)
+        self._no_device: str | None = None
+        if sink is None:  # a sink given (a room's mixer) is the caller's to speak of
+            sink, self._no_device = open_sink(device)
         self._notify = notify  # says there is no device when sound first comes, not before
         self.playout = AudioPlayout(sink, face_latency_from(shown))
         self.first_seq = first_seq
@@ -693,6 +710,10 @@ class CallSound:
             self._notify(self._no_device)
             self._no_device = None
         self.playout.push(packet, arrival_us)
+
+    def play_out(self) -> None:
+        """Play what is buffered (the sender said bye) before :meth:`finish`."""
+        self.playout.play_out()
 
     def finish(self, output: str | Path | None) -> dict[str, Any]:
         """Stop playing; put what was played into the MP4 at ``output`` (if any, and if
