@@ -307,3 +307,25 @@ def test_a_frame_owes_nothing_to_the_frame_before(mesh):
     # Away from the second face (where the first one was, too) the background shows exactly.
     far = ~cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert np.array_equal(again[far], bg[far])
+
+
+def test_the_face_drawn_in_a_large_frame_is_the_face_drawn_in_a_small_one(mesh):
+    # Only the face's box is drawn, wherever it lies in the frame: a face at the bottom right
+    # of a 1280x720 frame (its framebuffer there, not at the frame's corner) comes out as the
+    # same face in a 640x480 frame, pixel for pixel, feathered edge and mask too.
+    small_at, large_at = (320.0, 250.0, 500.0), (900.5, 470.25, 500.0)
+    shift = (int(large_at[0] - small_at[0]), int(large_at[1] - small_at[1]))
+    small_at = (small_at[0] + large_at[0] % 1, small_at[1] + large_at[1] % 1, small_at[2])
+    large_bg = cv2.resize(gradient_background(), (1280, 720))
+    small_bg = large_bg[shift[1] : shift[1] + H, shift[0] : shift[0] + W].copy()
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as small:
+        want, want_mask = small.render(frontal(mesh.vertices, t=small_at), small_bg, 8.0)
+    with FaceRenderer(1280, 720, mesh.triangles, mesh.uvs, smooth_texture()) as large:
+        got, mask = large.render(frontal(mesh.vertices, t=large_at), large_bg.copy(), 8.0)
+    part = np.s_[shift[1] : shift[1] + H, shift[0] : shift[0] + W]
+    assert want_mask.sum() > 20000
+    assert np.array_equal(mask[part], want_mask) and mask.sum() == want_mask.sum()
+    assert np.abs(got[part].astype(int) - want).max() <= 1
+    outside = np.ones(mask.shape, bool)
+    outside[part] = False
+    assert np.array_equal(got[outside], large_bg[outside])
