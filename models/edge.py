@@ -153,15 +153,16 @@ def correct(
     if x1 <= x0 or y1 <= y0:
         return image
     field = edge_field(poly, vectors, (int(x0), int(y0), int(x1), int(y1)))
-    moved = move(image[y0:y1, x0:x1], field)
-    # The face's inside keeps its place: where the drawn face lies deeper than the band.
-    drawn = face.view(np.uint8)
+    region = image[y0:y1, x0:x1]
+    moved = move(region, field)
+    # The face's inside keeps its place: where the drawn face lies deeper than the band. The
+    # face lies within the outline, well inside the box (all of it that is in the frame).
+    drawn = face[y0:y1, x0:x1].view(np.uint8)
     fx, fy, fw, fh = cv2.boundingRect(drawn)
     if fw and fh:
         depth = cv2.distanceTransform(drawn[fy : fy + fh, fx : fx + fw], cv2.DIST_L2, 3)
-        inside = np.zeros(face.shape, np.uint8)
-        inside[fy : fy + fh, fx : fx + fw] = depth > band
-        cv2.copyTo(image[y0:y1, x0:x1], inside[y0:y1, x0:x1], moved)
+        keep = np.s_[fy : fy + fh, fx : fx + fw]
+        cv2.copyTo(region[keep], (depth > band).view(np.uint8), moved[keep])
     out = image.copy()
     out[y0:y1, x0:x1] = moved
     return out
