@@ -179,6 +179,9 @@ class SurroundWarp:
         # (and OpenCV remaps four channels faster than three).
         self._layered = person is not None
         self._scene = background
+        # Pictures moved by the camera alone, kept while it stays where it is (its channel is
+        # quantised, so it holds for many frames): (camera, which, box) -> picture.
+        self._by_camera: dict[tuple[bytes, str, tuple[int, int, int, int]], np.ndarray] = {}
         alpha = np.full((self.height, self.width), 255, np.uint8)
         if person is not None:
             if person.shape != (self.height, self.width):
@@ -290,7 +293,7 @@ class SurroundWarp:
         """
         camera = None if _is_still(camera) else camera
         bx0, by0, bx1, by1 = box = box or (0, 0, self.width, self.height)
-        out = _moved(self.background, camera, box)
+        out = self._moved("frame", camera, box).copy()
         (x0, x1), (y0, y1) = self._box
         x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
         if x1 <= x0 or y1 <= y0:
@@ -307,20 +310,31 @@ class SurroundWarp:
         )
         inside = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         if self._layered:
-            out[inside] = _over(moved4, _moved(self._scene, camera, reach))
+            out[inside] = _over(moved4, self._moved("scene", camera, reach))
         else:
             out[inside] = cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR)
         return out
 
+    def _moved(
+        self, which: str, camera: np.ndarray | None, box: tuple[int, int, int, int]
+    ) -> np.ndarray:
+        """The part ``box`` of the snapshot frame (``which`` "frame") or of the scene behind
+        the person ("scene") moved by ``camera``: not to be written into."""
+        image = self.background if which == "frame" else self._scene
+        if camera is None:
+            return image[box[1] : box[3], box[0] : box[2]]
+        key = (camera.tobytes(), which, box)
+        if key not in self._by_camera:
+            if len(self._by_camera) >= 4 or any(k[0] != key[0] for k in self._by_camera):
+                self._by_camera.clear()  # the camera moved (or the sender's box did)
+            self._by_camera[key] = _moved(image, camera, box)
+        return self._by_camera[key]
 
-def _moved(
-    image: np.ndarray, camera: np.ndarray | None, box: tuple[int, int, int, int]
-) -> np.ndarray:
+
+def _moved(image: np.ndarray, camera: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     """The part ``box`` (x0, y0, x1, y1) of ``image`` moved by ``camera`` (a (3, 3)
-    homography, or None: still), its border reflected."""
+    homography), its border reflected."""
     x0, y0, x1, y1 = box
-    if camera is None:
-        return image[y0:y1, x0:x1].copy()
     to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera
     size, border = (x1 - x0, y1 - y0), cv2.BORDER_REFLECT_101
     # Nearly affine (the sender measures a similarity; its quantised corners add a trace of

@@ -286,3 +286,17 @@ def test_a_face_in_a_large_frame_is_warped_as_in_a_small_one_and_the_rest_is_the
     far = np.ones(large.shape[:2], bool)
     far[top - 40 : top + H + 40, left - 40 : left + W + 40] = False
     assert np.array_equal(got[far], large[far])
+
+
+def test_a_camera_that_moves_again_moves_the_picture_again() -> None:
+    # The scene moved by the camera is kept while the camera stays: a frame after the camera
+    # moved on (or back) is what a fresh warp draws for it, never the last frame's scene.
+    image, person = person_scene()
+    warp = SurroundWarp(image, outline(), person)
+    now = outline() + [5.0, 2.0]
+    cameras = [np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]]) for dx, dy in
+               [(4.0, -2.0), (4.0, -2.0), (-3.0, 5.0), (4.0, -2.0), (0.0, 0.0)]]  # fmt: skip
+    for camera in cameras:
+        want = SurroundWarp(image, outline(), person).warp(now, camera)
+        assert np.array_equal(warp.warp(now, camera), want)
+        assert np.array_equal(warp.warp(now, camera, (10, 20, 300, 250)), want[20:250, 10:300])
