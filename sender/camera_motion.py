@@ -43,20 +43,39 @@ LK_WINDOW = 21
 _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 
 
+def _person_parts(outline: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """Where the person may be, given the face outline (k, 2) in pixels: the head, a convex
+    polygon (m, 2), and the body below the chin, shoulders and arms reaching BODY_WIDTH face
+    widths out: (x0, x1, y0), everything right of x0, left of x1 and below y0."""
+    centre = outline.mean(0)
+    head = centre + PERSON_REACH * (outline - centre)
+    hull = cv2.convexHull(head.astype(np.float32)).reshape(-1, 2)
+    half = BODY_WIDTH * np.ptp(outline[:, 0]) / 2
+    return hull, (centre[0] - half, centre[0] + half, float(outline[:, 1].max()))
+
+
 def person_mask(shape: tuple[int, int], outline: np.ndarray) -> np.ndarray:
     """(h, w) bool: where the person may be, given the face outline (k, 2) in pixels."""
     h, w = shape
-    centre = outline.mean(0)
-    head = centre + PERSON_REACH * (outline - centre)
+    hull, (bx0, bx1, by0) = _person_parts(outline)
     mask = np.zeros((h, w), np.uint8)
-    hull = cv2.convexHull(head.astype(np.float32)).reshape(-1, 2)
     cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
-    # The body: below the chin, shoulders and arms reaching BODY_WIDTH face widths out.
-    half = BODY_WIDTH * np.ptp(outline[:, 0]) / 2
-    x0, x1 = int(max(0, centre[0] - half)), int(min(w, centre[0] + half + 1))
-    y0 = int(np.clip(outline[:, 1].max(), 0, h))
-    mask[y0:, x0:x1] = 1
+    x0, x1 = int(max(0, bx0)), int(min(w, bx1 + 1))
+    mask[int(np.clip(by0, 0, h)) :, x0:x1] = 1
     return mask.astype(bool)
+
+
+def person_covers(points: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of ``points`` (n, 2) :func:`person_mask` covers (to within its
+    rounding to pixels), found without drawing the frame's mask."""
+    hull, (bx0, bx1, by0) = _person_parts(outline)
+    # Inside a convex polygon: on the same side of every edge.
+    edges = np.roll(hull, -1, axis=0) - hull
+    offsets = points[:, None, :] - hull[None]
+    cross = edges[None, :, 0] * offsets[:, :, 1] - edges[None, :, 1] * offsets[:, :, 0]
+    head = (cross >= 0).all(1) | (cross <= 0).all(1)
+    body = (points[:, 0] >= bx0) & (points[:, 0] <= bx1) & (points[:, 1] >= by0)
+    return head | body
 
 
 class CameraTracker:
@@ -112,10 +131,7 @@ class CameraTracker:
         )
         good = status.ravel() == 1
         if outline is not None:
-            h, w = gray.shape
-            covered = person_mask((h, w), outline)
-            xy = np.clip(np.round(moved).astype(int), 0, [w - 1, h - 1])
-            good &= ~covered[xy[:, 1], xy[:, 0]]
+            good &= ~person_covers(moved, outline)
         if good.sum() < MIN_INLIERS:
             return self.homography
         # A similarity (shift, roll, zoom): what a shaking camera does to the scene, and few

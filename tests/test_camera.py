@@ -15,7 +15,7 @@ from models.camera import (
     homography_from_corners,
 )
 from models.face_channels import HYSTERESIS
-from sender.camera_motion import CameraTracker, person_mask
+from sender.camera_motion import CameraTracker, person_covers, person_mask
 
 W, H = 352, 288
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -163,3 +163,17 @@ def test_a_second_person_moving_is_not_taken_for_the_camera() -> None:
 
     assert error(found) < 0.75
     assert error(lost) > 3.0
+
+
+def test_the_points_the_person_covers_are_those_of_the_drawn_mask() -> None:
+    # Each frame's followed points are checked against the person's shape itself, not a mask
+    # of the whole frame drawn for them: the same answer, away from the mask's pixel edges.
+    t = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[176 + 30 * np.cos(t), 110 + 40 * np.sin(t)]
+    mask = person_mask((H, W), outline)
+    ys, xs = np.mgrid[0:H, 0:W]
+    points = np.c_[xs.ravel(), ys.ravel()].astype(np.float32)
+    covers = person_covers(points, outline).reshape(H, W)
+    edge = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))
+    assert 0.2 < mask.mean() < 0.8
+    assert np.array_equal(covers[edge == 0], mask[edge == 0])
