@@ -142,7 +142,8 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
         type=_size,
         default=MAX_SIZE,
         metavar="WxH",
-        help=f"scale larger inputs down to fit (default {MAX_SIZE[0]}x{MAX_SIZE[1]})",
+        help=f"scale larger inputs down to fit, turned the way the input is (default "
+        f"{MAX_SIZE[0]}x{MAX_SIZE[1]}: a 720x1280 phone picture is sent as it is)",
     )
 
 
