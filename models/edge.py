@@ -19,8 +19,6 @@ geometry placed stays.
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import cv2
 import numpy as np
 
@@ -116,19 +114,16 @@ def edge_field(
     return full[:rows, :cols]
 
 
-@lru_cache(maxsize=4)
-def _pixels(rows: int, cols: int) -> np.ndarray:
-    """(rows, cols, 2) float32 x, y of each pixel (one per picture size, kept)."""
-    xs, ys = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
-    return np.dstack([xs, ys])
-
-
 def move(image: np.ndarray, field: np.ndarray) -> np.ndarray:
     """``image`` (rows, cols, ...) moved by ``field`` (rows, cols, 2) of :func:`edge_field`."""
-    where = field + _pixels(*field.shape[:2])
-    # One two-channel map (x, y), no second: the stubs do not know that form.
+    # One two-channel map (x, y), no second, relative to each pixel: no grid of pixel
+    # positions to add (the stubs know neither).
     return cv2.remap(  # type: ignore[call-overload]
-        image, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        image,
+        field,
+        None,
+        cv2.INTER_LINEAR | cv2.WARP_RELATIVE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
     )
 
 

@@ -170,11 +170,6 @@ class SurroundWarp:
         )
         # The source is padded (below): the warp's maps count from its corner.
         self._pad = GRID_STEP * -(-max(self.width, self.height) // (SOURCE_PAD * GRID_STEP))
-        xs, ys = np.meshgrid(
-            np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
-        )
-        pixels = np.dstack([xs, ys])
-        self._pixels = {0: pixels, self._pad: pixels + np.float32(self._pad)}
         # The person layer's weight rides in the fourth channel, so one remap moves both
         # (and OpenCV remaps four channels faster than three).
         self._layered = person is not None
@@ -240,8 +235,12 @@ class SurroundWarp:
         pixel (0, 0) lies in the image remapped (0, or the warp's padding).
         """
         camera = None if _is_still(camera) else camera
-        both = self._map(outline, camera, box or (0, 0, self.width, self.height), origin)
-        return both[..., 0], both[..., 1]
+        x0, y0, x1, y1 = box = box or (0, 0, self.width, self.height)
+        both = self._map(outline, camera, box, origin)
+        xs, ys = np.meshgrid(
+            np.arange(x1 - x0, dtype=np.float32), np.arange(y1 - y0, dtype=np.float32)
+        )
+        return both[..., 0] + xs, both[..., 1] + ys
 
     def _map(
         self,
@@ -251,7 +250,8 @@ class SurroundWarp:
         origin: int,
     ) -> np.ndarray:
         """(y1 - y0, x1 - x0, 2) float32: :meth:`source_map` of ``box`` as one two-channel map
-        (a moving ``camera``, or None)."""
+        relative to each pixel of the box (``cv2.WARP_RELATIVE_MAP``: no grid of pixel
+        positions to add); a moving ``camera``, or None."""
         now, then = self.controls(outline, camera)
         back = np.linalg.inv(camera) if camera is not None else None
         # Only the nodes around the box, one more on each side: what lies between them is the
@@ -272,11 +272,14 @@ class SurroundWarp:
             shift[reached] += reach[reached, None] * spline(grid[reached])
         # Upsample the displacement, not the position: beyond the outermost nodes resize
         # holds the value, which is right for a displacement that is smooth there.
+        # The box's corner in the image remapped rides on the displacement: interpolation
+        # keeps a constant as it is.
+        shift += (x0 + origin, y0 + origin)
         coarse = shift.reshape(r1 - r0, c1 - c0, 2).astype(np.float32)
         size = ((c1 - c0) * GRID_STEP, (r1 - r0) * GRID_STEP)
         full = cv2.resize(coarse, size, interpolation=cv2.INTER_LINEAR)
         ox, oy = c0 * GRID_STEP, r0 * GRID_STEP
-        return full[y0 - oy : y1 - oy, x0 - ox : x1 - ox] + self._pixels[origin][y0:y1, x0:x1]
+        return full[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
 
     def warp(
         self,
@@ -305,7 +308,7 @@ class SurroundWarp:
             self._source,
             self._map(outline, camera, reach, self._pad),
             None,
-            cv2.INTER_LINEAR,
+            cv2.INTER_LINEAR | cv2.WARP_RELATIVE_MAP,
             borderMode=cv2.BORDER_REFLECT_101,
         )
         inside = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]

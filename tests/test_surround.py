@@ -299,4 +299,5 @@ def test_a_camera_that_moves_again_moves_the_picture_again() -> None:
     for camera in cameras:
         want = SurroundWarp(image, outline(), person).warp(now, camera)
         assert np.array_equal(warp.warp(now, camera), want)
-        assert np.array_equal(warp.warp(now, camera, (10, 20, 300, 250)), want[20:250, 10:300])
+        part = warp.warp(now, camera, (10, 20, 300, 250)).astype(int)
+        assert np.abs(part - want[20:250, 10:300]).max() <= 1  # as any box (above)
