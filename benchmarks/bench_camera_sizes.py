@@ -155,7 +155,8 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
     stages.wrap(decoder.renderer, "render", "render")
     stages.wrap(decoder.renderer, "_read_rgba", "readback")
     stages.wrap(receiver.decoder, "correct", "edge correct")
-    recorder = Mp4Recorder(folder / f"{clip.stem}.mp4", video.width, video.height, video.fps)
+    out = folder / f"{clip.stem}-received.mp4"  # beside the clip, never over it
+    recorder = Mp4Recorder(out, video.width, video.height, video.fps)
     stages.wrap(recorder, "write", "recording")
     shown = None
     try:
