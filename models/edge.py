@@ -130,10 +130,11 @@ def move(image: np.ndarray, field: np.ndarray) -> np.ndarray:
 def correct(
     image: np.ndarray, face: np.ndarray, outline: np.ndarray, vectors: np.ndarray, band: float
 ) -> np.ndarray:
-    """(h, w, 3) ``image`` (the receiver's finished picture) with its face's edge and
+    """``image`` (h, w, 3), the receiver's finished picture, with its face's edge and
     surroundings moved by the corrections ``vectors`` (EDGE_POINTS, 2) at ``outline``'s
-    :func:`edge_points`. The face's inside, where the drawn face (``face``, (h, w) bool)
-    lies deeper than ``band`` pixels from its edge, keeps its place."""
+    :func:`edge_points`, in place (a copy of a large frame cost more than the move around a
+    small face). The face's inside, where the drawn face (``face``, (h, w) bool) lies deeper
+    than ``band`` pixels from its edge, keeps its place."""
     if not np.any(vectors):
         return image
     h, w = image.shape[:2]
@@ -158,6 +159,5 @@ def correct(
         depth = cv2.distanceTransform(drawn[fy : fy + fh, fx : fx + fw], cv2.DIST_L2, 3)
         keep = np.s_[fy : fy + fh, fx : fx + fw]
         cv2.copyTo(region[keep], (depth > band).view(np.uint8), moved[keep])
-    out = image.copy()
-    out[y0:y1, x0:x1] = moved
-    return out
+    region[...] = moved
+    return image
