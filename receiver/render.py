@@ -107,8 +107,8 @@ class FaceRenderer:
 
     Only the face's box is drawn: the framebuffer is the size of that box (rounded up), not
     of the frame, so the work grows with the face's area. At 1280x720 the whole frame cost
-    about 7 ms more a frame on llvmpipe (clearing and resolving 4x-multisampled pixels that
-    the face never covers).
+    4-10 ms more a frame on llvmpipe, loaded (clearing and resolving 4x-multisampled pixels
+    that the face never covers).
 
     Each renderer owns its own EGL context, so several can live in one process; use one
     renderer from one thread.
