@@ -270,11 +270,11 @@ class SurroundWarp:
             residual = then - (now if back is None else _apply(back, now))
             spline = ThinPlate(now, residual, SMOOTHING)
             shift[reached] += reach[reached, None] * spline(grid[reached])
-        # Upsample the displacement, not the position: beyond the outermost nodes resize
-        # holds the value, which is right for a displacement that is smooth there.
         # The box's corner in the image remapped rides on the displacement: interpolation
         # keeps a constant as it is.
         shift += (x0 + origin, y0 + origin)
+        # Upsample the displacement, not the position: beyond the outermost nodes resize
+        # holds the value, which is right for a displacement that is smooth there.
         coarse = shift.reshape(r1 - r0, c1 - c0, 2).astype(np.float32)
         size = ((c1 - c0) * GRID_STEP, (r1 - r0) * GRID_STEP)
         full = cv2.resize(coarse, size, interpolation=cv2.INTER_LINEAR)
