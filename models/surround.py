@@ -303,8 +303,8 @@ class SurroundWarp:
             return out
         reach = (x0, y0, x1, y1)
         # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
-        # shows as a black band.
-        moved4 = cv2.remap(
+        # shows as a black band. One two-channel map, no second (the stubs do not know it).
+        moved4 = cv2.remap(  # type: ignore[call-overload]
             self._source,
             self._map(outline, camera, reach, self._pad),
             None,

@@ -338,10 +338,11 @@ class FaceRenderer:
         _VIEWPORT_STEP: a frame's picture depends on its own box alone (the projection
         differs in the last bits with the framebuffer's size). Making a new one costs nothing
         measurable on llvmpipe."""
-        size = tuple(-(-side // _VIEWPORT_STEP) * _VIEWPORT_STEP for side in (width, height))
-        if size == self._viewport:
+        vw = -(-width // _VIEWPORT_STEP) * _VIEWPORT_STEP
+        vh = -(-height // _VIEWPORT_STEP) * _VIEWPORT_STEP
+        if (vw, vh) == self._viewport:
             return
-        self._viewport = vw, vh = size
+        self._viewport = (vw, vh)
         assert self._renderer is not None
         self._renderer.viewport_width, self._renderer.viewport_height = vw, vh
         self._camera.xmag, self._camera.ymag = vw / 2.0, vh / 2.0
