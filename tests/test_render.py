@@ -329,3 +329,22 @@ def test_the_face_drawn_in_a_large_frame_is_the_face_drawn_in_a_small_one(mesh):
     outside = np.ones(mask.shape, bool)
     outside[part] = False
     assert np.array_equal(got[outside], large_bg[outside])
+
+
+def test_the_face_fades_in_over_the_feather(mesh):
+    # With a feather of F pixels, a pixel d pixels inside the face's edge shows d / F of the
+    # face (over black and over white alike), and all of it from F on: only that band is
+    # blended, and all of it is.
+    flat = np.full((64, 64, 3), 200, np.uint8)
+    verts = frontal(mesh.vertices)
+    feather = 10.0
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, flat) as r:
+        over_black, mask = r.render(verts, np.zeros((H, W, 3), np.uint8), feather_px=feather)
+        over_white, _ = r.render(verts, np.full((H, W, 3), 255, np.uint8), feather_px=feather)
+    shown = 1.0 - (over_white.astype(float) - over_black).mean(axis=2) / 255.0
+    inside = np.pad(mask.astype(np.uint8), 1)
+    depth = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
+    band = (depth >= 1.0) & (depth < feather)
+    assert band.sum() > 1000
+    assert np.abs(shown[band] - depth[band] / feather).max() < 0.02
+    assert (shown[depth >= feather] > 0.99).all()
