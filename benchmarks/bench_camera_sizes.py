@@ -1,6 +1,7 @@
 """Milliseconds per frame for each stage of both ends, at the sizes cameras give.
 
 Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_camera_sizes.py [--frames N] [--clips DIR]
+    [--only NAME ...]
 
 Makes copies of the bundled clip (640x480) at camera sizes, then runs both ends in one
 process (no sockets, OpenCV on one thread) and times each stage of each frame, as CPU time
