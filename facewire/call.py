@@ -137,6 +137,11 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
         "--loop", action="store_true", help="play the file again and again, its sound too"
     )
     p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
+    add_size_argument(p)
+
+
+def add_size_argument(p: argparse.ArgumentParser) -> None:
+    """--max-size, for `send`, `room` and `demo` alike."""
     p.add_argument(
         "--max-size",
         type=_size,
