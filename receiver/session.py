@@ -107,12 +107,13 @@ class ReceiverReport:
     def latency_each_second(self) -> list[float]:
         """The longest latency of the pictures shown in each second from the first one, ms
         (where a call was slow, not only how often: a join's first seconds, a burst)."""
-        if not self.latency_ms:
+        count = min(len(self.latency_ms), len(self.shown))  # appended together
+        if count == 0:
             return []
-        ready = np.asarray([r for r, _ in self.shown[: len(self.latency_ms)]], np.int64)
+        ready = np.asarray([r for r, _ in self.shown[:count]], np.int64)
         second = (ready - ready[0]) // 1_000_000
         most = np.zeros(int(second[-1]) + 1)
-        np.maximum.at(most, second, np.asarray(self.latency_ms[: len(ready)]))
+        np.maximum.at(most, second, np.asarray(self.latency_ms[:count]))
         return [round(float(v), 1) for v in most]
 
     def as_dict(self) -> dict:
