@@ -20,7 +20,6 @@ from __future__ import annotations
 import os
 import secrets
 from collections.abc import Callable
-from pathlib import Path
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives import hashes
@@ -28,7 +27,12 @@ from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X
 from cryptography.hazmat.primitives.ciphers.aead import AESGCM
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
-from facewire.protocol.keys import PUBLIC_SUFFIX, load_keypair, load_public_key
+from facewire.protocol.keys import (
+    PUBLIC_SUFFIX,
+    load_keypair,
+    load_public_key,
+    public_key_files,
+)
 from facewire.protocol.sframe import NK, SFrameError, metadata, new_kid
 from facewire.protocol.subjects import check_name
 
@@ -88,18 +92,8 @@ def open_sender_key(my_secret: bytes, their_public: bytes, room: str, sender: st
 
 def load_peers(sources: list[str]) -> dict[str, bytes]:
     """Peer name -> raw public key, from ``NAME.key`` files or folders of them."""
-    files: list[Path] = []
-    for source in sources:
-        path = Path(source)
-        if path.is_dir():
-            found = sorted(path.glob(f"*{PUBLIC_SUFFIX}"))
-            if not found:
-                raise ValueError(f"no public key files (*{PUBLIC_SUFFIX}) in {path}")
-            files += found
-        else:
-            files.append(path)
     peers: dict[str, bytes] = {}
-    for file in files:
+    for file in public_key_files(sources):
         name = file.name.removesuffix(PUBLIC_SUFFIX)
         check_name(name, f"peer (from {file})")
         peers[name] = _raw(load_public_key(file))
