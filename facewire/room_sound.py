@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from facewire.protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUDIO_RATE
-from facewire.receiver.audio import AudioSink, CallSound, NullSink
+from facewire.receiver.audio import AudioSink, CallSound, NullSink, open_device
 
 logger = logging.getLogger(__name__)
 
@@ -128,13 +128,7 @@ class DeviceMixer(Mixer):
 
 def open_mixer() -> tuple[DeviceMixer | None, str | None]:
     """The sound device's mixer, or None and one line saying why there is none."""
-    try:
-        return DeviceMixer(), None
-    except ImportError:
-        reason = "no sound device (sounddevice is not installed): the sound is only recorded"
-    except Exception as exc:  # PortAudio: no device, busy, no library
-        reason = f"no sound device ({str(exc).splitlines()[0]}): the sound is only recorded"
-    return None, reason
+    return open_device(DeviceMixer)
 
 
 class RoomSound:

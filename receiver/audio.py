@@ -27,7 +27,7 @@ import wave
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -36,6 +36,8 @@ from facewire.protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUD
 from facewire.protocol.packets import AudioFrame, KeyFrame
 
 logger = logging.getLogger(__name__)
+
+_Device = TypeVar("_Device")
 
 FRAME_US = AUDIO_FRAME_MS * 1000
 #: Missing steps concealed by the codec in a row; beyond them the gap is silence.
@@ -216,17 +218,23 @@ class DeviceSink:
         self._stream.close()
 
 
-def open_sink(device: bool = True) -> tuple[AudioSink, str | None]:
-    """The sound device, or a null sink and one line saying why there is none."""
-    if not device:
-        return NullSink(), None
+def open_device(make: Callable[[], _Device]) -> tuple[_Device | None, str | None]:
+    """What ``make`` opens on the sound device, or None and one line saying why it cannot."""
     try:
-        return DeviceSink(), None
+        return make(), None
     except ImportError:
         reason = "no sound device (sounddevice is not installed): the sound is only recorded"
     except Exception as exc:  # PortAudio: no device, busy, no library
         reason = f"no sound device ({str(exc).splitlines()[0]}): the sound is only recorded"
-    return NullSink(), reason
+    return None, reason
+
+
+def open_sink(device: bool = True) -> tuple[AudioSink, str | None]:
+    """The sound device, or a null sink and one line saying why there is none."""
+    if not device:
+        return NullSink(), None
+    sink, reason = open_device(DeviceSink)
+    return (NullSink() if sink is None else sink), reason
 
 
 @dataclass
