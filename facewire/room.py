@@ -225,7 +225,8 @@ def run(args: argparse.Namespace) -> int:
             while not stop():
                 sent = sending is None or sending.done.is_set()
                 came = any(f.sessions for f in receiver.figures.values())
-                if sent and not receiver.peers and (sending is not None or came):
+                alone = not receiver.peers and not receiver.joining
+                if sent and alone and (sending is not None or came):
                     break
                 receiver.run_once(TICK_S)
                 if link.lost:
