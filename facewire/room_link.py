@@ -13,7 +13,7 @@ import asyncio
 import logging
 import ssl
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from typing import Any
 
@@ -28,8 +28,12 @@ CALL_TIMEOUT_S = 5.0
 SNAPSHOT_TIMEOUT_S = 1.0
 #: Reconnect quickly to another node of the cluster when the one in use dies.
 RECONNECT_WAIT_S = 0.25
-#: A cluster that has just started elects JetStream's leader before a bucket can be made.
+#: A cluster that has just started elects JetStream's leader before a bucket can be made, and
+#: one that lost the node leading the bucket elects another (4.2-4.6 s on loopback) before a
+#: write goes through: a write is tried again for this long, ...
 BUCKET_WAIT_S = 10.0
+#: ... each time waiting this long for the bucket's answer (it is a few ms when it comes).
+BUCKET_ATTEMPT_S = 1.0
 MAX_RECONNECT_ATTEMPTS = 120  # 30 s of trying, then the call ends
 
 
@@ -112,7 +116,7 @@ class RoomLink:
 
     def put_entry(self, key: str, data: bytes) -> None:
         """Put ``data`` in the room's bucket under ``key`` (a snapshot, a sealed key box)."""
-        self._call(self._kv.put(key, data))
+        self._call(self._write(self._kv.put, key, data), BUCKET_WAIT_S + CALL_TIMEOUT_S)
 
     def get_snapshot(self, name: str) -> bytes | None:
         """``name``'s sealed snapshot; None when the bucket has none, or cannot say now (a
@@ -128,7 +132,7 @@ class RoomLink:
             return None
 
     def delete_snapshot(self) -> None:
-        self._call(self._kv.delete(self.name))
+        self._call(self._write(self._kv.delete, self.name), BUCKET_WAIT_S + CALL_TIMEOUT_S)
 
     @property
     def connected_url(self) -> str | None:
@@ -212,7 +216,7 @@ class RoomLink:
         from nats.js.api import KeyValueConfig, StorageType
         from nats.js.errors import BadRequestError, BucketNotFoundError, ServiceUnavailableError
 
-        js = self._nc.jetstream()
+        js = self._nc.jetstream(timeout=BUCKET_ATTEMPT_S)
         nodes = {(u.hostname, u.port) for u in self._nc.servers}
         config = KeyValueConfig(
             bucket=subjects.bucket(self.room),
@@ -233,6 +237,23 @@ class RoomLink:
                 if asyncio.get_running_loop().time() > deadline:
                     raise
                 await asyncio.sleep(0.25)
+
+    async def _write(self, write: Callable[..., Awaitable[Any]], *args: Any) -> None:
+        """``write(*args)`` to the bucket, again while the cluster has no leader for it (a
+        node died; the others elect one) for up to BUCKET_WAIT_S."""
+        from nats.errors import TimeoutError as NatsTimeout
+        from nats.js.errors import NoStreamResponseError, ServiceUnavailableError
+
+        deadline = asyncio.get_running_loop().time() + BUCKET_WAIT_S
+        while True:
+            try:
+                await write(*args)
+                return
+            except (NatsTimeout, NoStreamResponseError, ServiceUnavailableError) as exc:
+                if asyncio.get_running_loop().time() > deadline:
+                    raise
+                logger.info("the bucket did not answer (%s): again", type(exc).__name__)
+                await asyncio.sleep(0.1)
 
     async def _deliver(self, msg: Any) -> None:
         self.on_message(msg.subject, msg.data, now_us())

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from facewire.protocol import subjects
 from facewire.protocol.sframe import RoomKey
 from facewire.relay import Relay, RelayConfig, free_port
 from facewire.room_link import RoomLink
@@ -91,5 +92,26 @@ def test_a_room_opens_on_a_cluster_that_has_only_just_started(cluster: list[Rela
         link.start()
         link.put_snapshot(b"sealed")
         assert link.get_snapshot("alice") == b"sealed"
+    finally:
+        link.close()
+
+
+def test_the_bucket_takes_a_snapshot_while_the_cluster_elects_its_leader_again(
+    cluster: list[Relay],
+) -> None:
+    # The node that led the bucket dies: the others elect another in seconds, and a sender
+    # that puts its snapshot meanwhile (one joining just then) waits for it instead of failing.
+    link = RoomLink(
+        [r.config.client_url() for r in cluster], "standup", "dave",
+        on_message=lambda *_: None, notify=lambda _: None,
+    )  # fmt: skip
+    try:
+        link.start()
+        link.put_snapshot(b"first")
+        stream = f"KV_{subjects.bucket('standup')}"
+        info = link._call(link._nc.jetstream().stream_info(stream))
+        next(r for r in cluster if r.config.name == info.cluster.leader).process.kill()
+        link.put_snapshot(b"second")
+        assert link.get_snapshot("dave") == b"second"
     finally:
         link.close()
