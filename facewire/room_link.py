@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import random
 import ssl
 import threading
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from typing import Any
+from urllib.parse import urlsplit
 
 from facewire.protocol import subjects
 from facewire.protocol.clock import now_us
@@ -56,6 +58,19 @@ def _hidden(url: str) -> str:
     """``url`` without its token (for messages)."""
     scheme, _, rest = url.partition("://")
     return f"{scheme}://{rest.rpartition('@')[2]}" if rest else url
+
+
+def _pool(servers: list[str]) -> tuple[list[str], str | None]:
+    """``servers`` in a random order (participants spread over a cluster's nodes) and, when
+    they all carry one token, the URLs without it and the token: nats-py gives it to every
+    node then, also to those the cluster tells of (their URLs have no token; with it in the
+    URLs they were tried and refused, an attempt each, when a node died)."""
+    order = random.sample(servers, len(servers))
+    parts = [urlsplit(s) for s in servers]
+    tokens = {p.username for p in parts}
+    if len(tokens) != 1 or None in tokens or any(p.password or not p.scheme for p in parts):
+        return order, None
+    return [_hidden(s) for s in order], tokens.pop()
 
 
 class RoomLink:
@@ -177,11 +192,16 @@ class RoomLink:
             self.reconnects += 1
             self.notify(f"reconnected to the relay at {self.connected_url}")
 
+        servers, token = _pool(self.servers)
         try:
             # nats-py retries a first connection as it would a lost one: bound it.
             self._nc = await asyncio.wait_for(
                 nats.connect(
-                    self.servers,
+                    servers,
+                    token=token,
+                    # In our order: the node just lost is the last one tried again (one that
+                    # stopped answering takes connect_timeout to refuse).
+                    dont_randomize=True,
                     name=f"facewire {self.room}/{self.name}",
                     connect_timeout=2,
                     allow_reconnect=True,

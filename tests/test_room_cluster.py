@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -113,5 +114,28 @@ def test_the_bucket_takes_a_snapshot_while_the_cluster_elects_its_leader_again(
         next(r for r in cluster if r.config.name == info.cluster.leader).process.kill()
         link.put_snapshot(b"second")
         assert link.get_snapshot("dave") == b"second"
+    finally:
+        link.close()
+
+
+def test_a_participant_given_one_node_moves_to_another_the_cluster_told_of(
+    cluster: list[Relay],
+) -> None:
+    # Only the first node's URL is given: the cluster tells the link of the others (their URLs
+    # without the token), and when that node dies the link reconnects to one of them.
+    said: list[str] = []
+    link = RoomLink(
+        [cluster[0].config.client_url()], "standup", "alice",
+        on_message=lambda *_: None, notify=said.append,
+    )  # fmt: skip
+    try:
+        link.start()
+        link.put_snapshot(b"sealed")
+        cluster[0].process.kill()
+        deadline = time.monotonic() + 30
+        while link.reconnects == 0 and not link.lost and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.reconnects == 1, said
+        assert link.connected_url in {f"nats://127.0.0.1:{r.config.port}" for r in cluster[1:]}
     finally:
         link.close()
