@@ -208,7 +208,13 @@ def run(args: argparse.Namespace) -> int:
                     if sending is not None and sending.endpoint is not None else None
                 ),
             )  # fmt: skip
-            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell, tls)
+            link = RoomLink(
+                servers, args.room, args.name, receiver.deliver, tell, tls,
+                on_reconnected=lambda: (
+                    sending.endpoint.reconnected()
+                    if sending is not None and sending.endpoint is not None else None
+                ),
+            )  # fmt: skip
             link.start()
             if isinstance(key, SenderKeys):  # the boxes are in the bucket before any media
                 key.fetch = link.get_entry

@@ -30,6 +30,12 @@ CALL_TIMEOUT_S = 5.0
 SNAPSHOT_TIMEOUT_S = 1.0
 #: Reconnect quickly to another node of the cluster when the one in use dies.
 RECONNECT_WAIT_S = 0.25
+#: A node that dies with its process closes the connection, noticed at once; one that stops
+#: answering (a machine gone, a network cut, a process hung) is noticed by PINGs going
+#: unanswered: one every PING_S, the connection given up when the third is due with two still
+#: unanswered, 1.0-1.5 s after the node's last word (12 bytes a PING and its PONG, 2 a second).
+PING_S = 0.5
+MAX_UNANSWERED_PINGS = 2
 #: A cluster that has just started elects JetStream's leader before a bucket can be made, and
 #: one that lost the node leading the bucket elects another (4.2-4.6 s on loopback) before a
 #: write goes through: a write is tried again for this long, ...
@@ -82,6 +88,7 @@ class RoomLink:
         on_message: Callable[[str, bytes, int], None],
         notify: Callable[[str], None],
         tls: ssl.SSLContext | None = None,
+        on_reconnected: Callable[[], None] = lambda: None,
     ) -> None:
         self.servers = servers
         self.tls = tls  # None: the system's CAs, when a relay asks for TLS
@@ -89,6 +96,8 @@ class RoomLink:
         self.name = name
         self.on_message = on_message
         self.notify = notify
+        #: Called on the link's thread once it is connected again (to another node).
+        self.on_reconnected = on_reconnected
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="nats", daemon=True)
         self._nc: Any = None
@@ -191,6 +200,7 @@ class RoomLink:
         async def reconnected() -> None:
             self.reconnects += 1
             self.notify(f"reconnected to the relay at {self.connected_url}")
+            self.on_reconnected()
 
         servers, token = _pool(self.servers)
         try:
@@ -207,8 +217,8 @@ class RoomLink:
                     allow_reconnect=True,
                     reconnect_time_wait=RECONNECT_WAIT_S,
                     max_reconnect_attempts=MAX_RECONNECT_ATTEMPTS,
-                    ping_interval=2,
-                    max_outstanding_pings=2,
+                    ping_interval=PING_S,  # type: ignore[arg-type]  # nats-py sleeps it: a float
+                    max_outstanding_pings=MAX_UNANSWERED_PINGS,
                     no_echo=True,  # our own bundles do not come back to us
                     tls=self.tls,
                     error_cb=error,
