@@ -60,6 +60,10 @@ LOCKED_RETRY_S = 5.0
 SNAPSHOT_RETRY_S = 0.5
 #: The longest gap in a recording filled by holding the last picture (frames).
 MAX_HOLD_FRAMES = 60
+#: A wait this long between two decoded frames of a peer is kept in its figures (a freeze;
+#: a still face sends a frame a second, a moving one 15-30), at most MAX_FREEZES of them.
+FREEZE_MS = 200.0
+MAX_FREEZES = 1000
 #: Pictures kept to tell the sound how long after capture a face is shown (it uses the last 30).
 SHOWN_KEPT = 60
 SNAPSHOT, MEDIA, CONTROL = b"s", b"m", b"c"
@@ -150,6 +154,8 @@ class Peer:
             if figures.last_frame_us is not None:
                 gap_ms = (now - figures.last_frame_us) / 1000.0
                 figures.max_gap_ms = max(figures.max_gap_ms, gap_ms)
+                if gap_ms >= FREEZE_MS and len(figures.freezes) < MAX_FREEZES:
+                    figures.freezes.append((figures.last_frame_us, round(gap_ms, 1)))
             figures.last_frame_us = now
             # The recording's frame this picture becomes places the voice in the recording.
             index = values.seq if self.recorder is None else self._hold(values.seq)
@@ -230,6 +236,7 @@ class PeerFigures:
         self.left: str | None = None
         self.last_frame_us: int | None = None
         self.max_gap_ms = 0.0  # the longest wait between two decoded frames (a freeze)
+        self.freezes: list[tuple[int, float]] = []  # (from µs, ms) of waits over FREEZE_MS
         self.sound: dict[str, Any] = {}  # receiver/audio.py's AudioReport, sessions added
         self.recorded_from: int | None = None  # the sender's frame its recording starts with
 
@@ -255,6 +262,7 @@ class PeerFigures:
             "messages": self.messages,
             "bytes": {"sealed": self.sealed_bytes, "nats": self.nats_bytes},
             "max_gap_ms": round(self.max_gap_ms, 1),
+            "freezes": self.freezes,
             "sessions": self.sessions,
             "keyframe_requests": self.keyframe_requests,
             "chain_breaks": self.chain_breaks,
