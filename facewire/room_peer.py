@@ -162,7 +162,10 @@ class Peer:
             if self.painter is not None:
                 picture = self._record(values)
                 if self.gallery is not None:
-                    self.gallery.show(self.name, picture, latency_ms, 0)
+                    # Shown with its voice: as long after its capture as the sound is heard.
+                    delay = self.audio.delay_us() if self.audio is not None else None
+                    due = None if delay is None else values.capture_us + delay
+                    self.gallery.show(self.name, picture, values.capture_us, due)
             if self.audio is not None:
                 self.shown.append((now_us(), values.capture_us))
                 del self.shown[:-SHOWN_KEPT]
@@ -318,7 +321,10 @@ class RoomReceiver:
         self.inbox.put((subject, data, arrival_us))
 
     def run_once(self, timeout_s: float) -> None:
-        """Handle what came within ``timeout_s``, then drop peers gone silent."""
+        """Handle what came within ``timeout_s`` (less when a picture of the gallery is due
+        sooner), then drop peers gone silent."""
+        if self.gallery is not None:
+            timeout_s = min(timeout_s, self.gallery.wait_s())
         try:
             item: tuple[str, bytes, int] | None = self.inbox.get(timeout=timeout_s)
         except queue.Empty:
@@ -332,6 +338,8 @@ class RoomReceiver:
                 item = None
         for joining in [j for j in self.joining.values() if j.done.is_set()]:
             self._joined(joining)
+        if self.gallery is not None:
+            self.gallery.tick()
         now = time.monotonic()
         for peer in list(self.peers.values()):
             if now - peer.last_heard > PEER_GONE_S:
