@@ -1,13 +1,13 @@
 """A room's gallery: every peer's picture in a grid, each with its name, served by the
 two-party live view (receiver/live_view.py) as its one picture.
 
-The receiving loop hands each peer's rendered picture to :meth:`Gallery.show` with the time it
-is due on screen: its capture time plus the delay its peer's sound is played with (the sound
-waits in a jitter buffer, 140 ms at least; a picture drawn when decoded came before its
-voice). The gallery holds it until then (:meth:`Gallery.tick`, which the loop calls when
-:meth:`Gallery.wait_s` says), so each face is seen with its voice. The grid is drawn at most
-GALLERY_FPS times a second, the senders' frame rate: a picture is on screen within a frame
-of its time.
+The receiving loop hands each peer's rendered picture to :meth:`Gallery.show`; it is due on
+screen at its capture time plus the delay its peer's sound is heard with then (the sound waits
+in a jitter buffer, 140 ms at least, and catches up or falls back as it plays; a picture drawn
+when decoded came before its voice). The gallery holds it until then (:meth:`Gallery.tick`,
+which the loop calls when :meth:`Gallery.wait_s` says), so each face is seen with its voice.
+The grid is drawn at most GALLERY_FPS times a second, the senders' frame rate: a picture is
+on screen within a frame of its time.
 """
 
 from __future__ import annotations
@@ -88,6 +88,10 @@ def grid(pictures: dict[str, np.ndarray | None]) -> np.ndarray:
     return out
 
 
+def _no_delay() -> int | None:
+    return None
+
+
 class Gallery:
     """Feeds ``sink`` (a LiveView) with the grid of the peers' pictures, each at its time
     (``clock``: µs, the monotonic clock the receiver stamps with)."""
@@ -100,56 +104,60 @@ class Gallery:
         #: The capture time (µs) of the picture each peer's tile shows.
         self.captured: dict[str, int] = {}
         self.report = _Report()
-        # Each peer's pictures waiting for their time: (due µs, capture µs, scaled picture).
-        self._held: dict[str, deque[tuple[int, int, np.ndarray]]] = {}
+        # Each peer's pictures waiting for their time, (capture µs, scaled picture), and the
+        # delay after capture its sound is heard with now (µs; None: shown at once).
+        self._held: dict[str, deque[tuple[int, np.ndarray]]] = {}
+        self._delay: dict[str, Callable[[], int | None]] = {}
         self._drawn = -math.inf  # µs
         self._owed = False  # a picture came to the screen since the last draw
         self._latency_ms = 0.0  # capture to screen of the last picture put there
         self._seq = 0
 
-    def show(
-        self, name: str, picture: np.ndarray, capture_us: int, due_us: int | None = None
-    ) -> None:
-        """``picture`` (captured at ``capture_us``) goes on screen at ``due_us``; at once when
-        None (a peer without sound) or past."""
-        due = capture_us if due_us is None else due_us
+    def joined(self, name: str, delay_us: Callable[[], int | None] = _no_delay) -> None:
+        """``name``'s tile, empty until its first picture; ``delay_us()`` says how long after
+        its capture a picture of it is due on screen (its sound's delay, which the sound's
+        playout changes as it goes: a picture waits for the delay of when it is shown)."""
+        self.pictures.setdefault(name, None)
+        self._delay[name] = delay_us
+        self._draw(self.clock())
+
+    def show(self, name: str, picture: np.ndarray, capture_us: int) -> None:
+        """``picture``, captured at ``capture_us``, goes on screen at its time."""
         held = self._held.setdefault(name, deque(maxlen=MAX_HELD))
-        # Pictures before it due no sooner (the sound's delay went down: a new run of it) would
-        # never be seen without it: they go.
-        while held and held[-1][0] >= due:
-            held.pop()
-        held.append((due, capture_us, _scaled(picture)))
+        held.append((capture_us, _scaled(picture)))
         self.tick()
+
+    def _due(self, name: str, capture_us: int) -> int:
+        delay = self._delay.get(name, _no_delay)()
+        return capture_us + (delay or 0)
 
     def wait_s(self) -> float:
         """Seconds until :meth:`tick` has something to do (a picture's time, or a draw that
         waits for the frame rate); inf when nothing waits."""
         now = self.clock()
-        due = [held[0][0] for held in self._held.values() if held]
+        due = [self._due(name, held[0][0]) for name, held in self._held.items() if held]
         if self._owed:
             due.append(round(self._drawn + 1e6 / GALLERY_FPS))
         return max(0.0, (min(due) - now) / 1e6) if due else math.inf
 
     def tick(self) -> None:
-        """Put on screen each picture whose time has come (the newest of a peer's), and draw
-        the grid if that changed it and the frame rate allows."""
+        """Put on screen each peer's newest picture whose time has come, and draw the grid if
+        that changed it and the frame rate allows."""
         now = self.clock()
         for name, held in self._held.items():
-            while held and held[0][0] <= now:
-                _, self.captured[name], self.pictures[name] = held.popleft()
+            delay = self._delay.get(name, _no_delay)() or 0
+            while held and held[0][0] + delay <= now:
+                self.captured[name], self.pictures[name] = held.popleft()
                 self._latency_ms = (now - self.captured[name]) / 1000.0
                 self._owed = True
         if self._owed and now - self._drawn >= 1e6 / GALLERY_FPS:
             self._draw(now)
 
-    def joined(self, name: str) -> None:
-        self.pictures.setdefault(name, None)
-        self._draw(self.clock())
-
     def left(self, name: str) -> None:
         self.pictures.pop(name, None)
         self.captured.pop(name, None)
         self._held.pop(name, None)
+        self._delay.pop(name, None)
         self._draw(self.clock())
 
     def _draw(self, now: int) -> None:

@@ -161,11 +161,8 @@ class Peer:
             index = values.seq if self.recorder is None else self._hold(values.seq)
             if self.painter is not None:
                 picture = self._record(values)
-                if self.gallery is not None:
-                    # Shown with its voice: as long after its capture as the sound is heard.
-                    delay = self.audio.delay_us() if self.audio is not None else None
-                    due = None if delay is None else values.capture_us + delay
-                    self.gallery.show(self.name, picture, values.capture_us, due)
+                if self.gallery is not None:  # it waits there for its voice
+                    self.gallery.show(self.name, picture, values.capture_us)
             if self.audio is not None:
                 self.shown.append((now_us(), values.capture_us))
                 del self.shown[:-SHOWN_KEPT]
@@ -478,7 +475,9 @@ class RoomReceiver:
         if joining.asked_keyframe:
             figures.keyframe_requests += 1
             peer.last_request = time.monotonic()  # its keyframe is on its way
-        if self.gallery is not None:
+        if self.gallery is not None and peer.audio is not None:
+            self.gallery.joined(name, peer.audio.delay_us)  # each picture with its voice
+        elif self.gallery is not None:
             self.gallery.joined(name)
         self.peers[name] = peer
         figures.sessions += 1

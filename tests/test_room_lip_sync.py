@@ -62,6 +62,10 @@ def test_the_gallery_holds_each_face_until_its_voice_is_heard() -> None:
         if captured > began
     ]  # fmt: skip
     assert len(offsets_ms) > 30
+    print(
+        f"alice's pictures on screen after her voice: median {statistics.median(offsets_ms):.0f}"
+        f" ms, {min(offsets_ms):.0f} to {max(offsets_ms):.0f} ms ({len(offsets_ms)} pictures)"
+    )
     # Never before its voice: drawn when decoded, a picture came 50-100 ms ahead of it (the
     # sound's jitter buffer holds 140 ms at least), ...
     assert min(offsets_ms) > -SLACK_MS, sorted(offsets_ms)[:5]
