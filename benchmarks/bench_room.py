@@ -29,6 +29,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -47,6 +48,14 @@ def _relay_usage(pid: int) -> tuple[float, int]:
     cpu = (int(fields[11]) + int(fields[12])) / TICK  # utime, stime
     rss = int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     return cpu, rss
+
+
+def _p50_p99(peers: Any, what: str) -> str:
+    """The median of the peers' p50s of ``what`` and the worst p99, as two columns."""
+    p50 = [p[what]["p50"] for p in peers if p.get(what)]
+    p99 = [p[what]["p99"] for p in peers if p.get(what)]
+    return (f"{statistics.median(p50) if p50 else float('nan'):>14.0f}  "
+            f"{max(p99) if p99 else float('nan'):>6.0f}")  # fmt: skip
 
 
 def main() -> int:
@@ -121,20 +130,27 @@ def main() -> int:
     mode = "live encoders" if args.live else f"replayed, {ready}/{args.senders} senders ready"
     print(f"room: {args.senders} sending, {args.watchers} receiving only, {args.frames} frames "
           f"each, {len(clips) or 1} clip(s), {mode}; {elapsed:.1f} s")  # fmt: skip
-    print("participant  peers  frames  downlink kbit/s  latency p50 ms  p99 ms  late kf req")
+    print("participant  peers  frames  downlink kbit/s  arrived p50 ms  p99 ms  decoded p50 ms"
+          "  p99 ms  late kf req")  # fmt: skip
+    messages = sealed = faces = 0
     for person in sorted(work.glob("*.json")):
         stats = json.loads(person.read_text())
         peers = stats["peers"].values()
-        p50 = [p["latency_ms"]["p50"] for p in peers if p["latency_ms"]]
-        p99 = [p["latency_ms"]["p99"] for p in peers if p["latency_ms"]]
         if args.live:
             down = sum(p["kbps"]["nats"] for p in peers)
         else:
             down = sum(p["bytes"]["nats"] for p in peers) * 8 / clip_s / 1000
+        messages += sum(p["messages"] for p in peers)
+        sealed += sum(p["bytes"]["sealed"] for p in peers)
+        faces += len(peers)
         late = stats.get("late_keyframe_requests", "")
         print(f"{stats['name']:<11}  {len(peers):>5}  {sum(p['frames'] for p in peers):>6}  "
-              f"{down:>15.1f}  {statistics.median(p50) if p50 else float('nan'):>14.0f}  "
-              f"{max(p99) if p99 else float('nan'):>6.0f}  {late:>11}")  # fmt: skip
+              f"{down:>15.1f}  {_p50_p99(peers, 'arrival_ms')}  {_p50_p99(peers, 'latency_ms')}"
+              f"  {late:>11}")  # fmt: skip
+    print(
+        f"a face: {messages / max(1, faces) / clip_s:.1f} messages/s, "
+        f"{sealed / max(1, messages):.0f} bytes sealed each (NATS's MSG line not counted)"
+    )
     print(f"relay: {cpu:.2f} CPU s over {elapsed:.1f} s ({100 * cpu / elapsed:.1f}% of a core), "
           f"largest RSS {most_rss / 2**20:.1f} MiB")  # fmt: skip
     return 0

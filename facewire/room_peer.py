@@ -151,6 +151,7 @@ class Peer:
             figures.frames += 1
             latency_ms = (now - values.capture_us) / 1000.0
             figures.latency_ms.append(latency_ms)
+            figures.arrival_ms.append((arrival_us - values.capture_us) / 1000.0)
             if figures.last_frame_us is not None:
                 gap_ms = (now - figures.last_frame_us) / 1000.0
                 figures.max_gap_ms = max(figures.max_gap_ms, gap_ms)
@@ -223,6 +224,9 @@ class PeerFigures:
     def __init__(self) -> None:
         self.frames = 0
         self.latency_ms: list[float] = []
+        # Capture to the arrival of its message at this participant's link: the relay's
+        # share (and the bundling's), without the wait in the inbox and the decoding.
+        self.arrival_ms: list[float] = []
         self.sealed_bytes = 0
         self.nats_bytes = 0
         self.messages = 0
@@ -258,6 +262,7 @@ class PeerFigures:
         return {
             "frames": self.frames,
             "latency_ms": _summary(self.latency_ms),
+            "arrival_ms": _summary(self.arrival_ms),
             "kbps": {"sealed": kbps(self.sealed_bytes), "nats": kbps(self.nats_bytes)},
             "messages": self.messages,
             "bytes": {"sealed": self.sealed_bytes, "nats": self.nats_bytes},
