@@ -131,7 +131,7 @@ def main() -> int:
     print(f"room: {args.senders} sending, {args.watchers} receiving only, {args.frames} frames "
           f"each, {len(clips) or 1} clip(s), {mode}; {elapsed:.1f} s")  # fmt: skip
     print("participant  peers  frames  downlink kbit/s  arrived p50 ms  p99 ms  decoded p50 ms"
-          "  p99 ms  late kf req")  # fmt: skip
+          "  p99 ms  late kf req  CPU s")  # fmt: skip
     messages = sealed = faces = 0
     for person in sorted(work.glob("*.json")):
         stats = json.loads(person.read_text())
@@ -144,9 +144,10 @@ def main() -> int:
         sealed += sum(p["bytes"]["sealed"] for p in peers)
         faces += len(peers)
         late = stats.get("late_keyframe_requests", "")
+        cpu_s = stats.get("cpu_s", "")
         print(f"{stats['name']:<11}  {len(peers):>5}  {sum(p['frames'] for p in peers):>6}  "
               f"{down:>15.1f}  {_p50_p99(peers, 'arrival_ms')}  {_p50_p99(peers, 'latency_ms')}"
-              f"  {late:>11}")  # fmt: skip
+              f"  {late:>11}  {cpu_s:>5}")  # fmt: skip
     print(
         f"a face: {messages / max(1, faces) / clip_s:.1f} messages/s, "
         f"{sealed / max(1, messages):.0f} bytes sealed each (NATS's MSG line not counted)"

@@ -125,6 +125,7 @@ class _Participant:
         self.asked: set[str] = set()  # who asked this one for a keyframe
         self.late_requests = 0
         self.started = False
+        self.cpu_at_go = 0.0  # this process's CPU seconds when the clip started
         participant = self
 
         class Receiver(RoomReceiver):
@@ -172,6 +173,7 @@ def replay(server: str, key_file: Path, name: str, recording_file: Path, expect:
         "name": name,
         "sent": me.sender.figures(),
         "late_keyframe_requests": me.late_requests,
+        "cpu_s": round(time.process_time() - me.cpu_at_go, 2),
         "peers": receiver.stats(),
         "rejected": dict(receiver.rejected),
     }
@@ -192,6 +194,7 @@ def _send(me: _Participant, recording: dict[str, Any], expect: list[str], go_fil
     first = next(e[1] for e in entries if e[0] == "frame")
     offset = go_us - first
     me.started = True
+    me.cpu_at_go = time.process_time()
     last_seq = 0
     for entry in entries[1:]:
         if entry[0] == "snapshot":  # a scene cut
