@@ -13,9 +13,11 @@ whole ``facewire room`` (camera-less, encoding its clip as it goes).
 
 Prints, per participant, its downlink on the NATS connection (kbit/s over the clip's length,
 the sum over the peers it received: sealed bundles and NATS's MSG lines, not TCP/IP; with
---live over each peer's span) and the latency through the relay (capture to decoded, p50 of
-its peers' p50s, worst p99), then the relay's CPU (seconds and share of one core while the
-clips play) and its largest resident memory.
+--live over each peer's span), the latency in ms from capture to its message's arrival at
+the participant's link (the bundling and the relay) and to decoded (p50 of its peers' p50s,
+worst p99), a replaying sender's CPU seconds from the clip's start; then a face's messages,
+and the relay's CPU (seconds and share of one core while the clips play) and its largest
+resident memory.
 """
 
 from __future__ import annotations
@@ -54,8 +56,8 @@ def _p50_p99(peers: Any, what: str) -> str:
     """The median of the peers' p50s of ``what`` and the worst p99, as two columns."""
     p50 = [p[what]["p50"] for p in peers if p.get(what)]
     p99 = [p[what]["p99"] for p in peers if p.get(what)]
-    return (f"{statistics.median(p50) if p50 else float('nan'):>14.0f}  "
-            f"{max(p99) if p99 else float('nan'):>6.0f}")  # fmt: skip
+    return (f"{statistics.median(p50) if p50 else float('nan'):>11.0f}  "
+            f"{max(p99) if p99 else float('nan'):>5.0f}")  # fmt: skip
 
 
 def main() -> int:
@@ -130,9 +132,8 @@ def main() -> int:
     mode = "live encoders" if args.live else f"replayed, {ready}/{args.senders} senders ready"
     print(f"room: {args.senders} sending, {args.watchers} receiving only, {args.frames} frames "
           f"each, {len(clips) or 1} clip(s), {mode}; {elapsed:.1f} s")  # fmt: skip
-    print("participant  peers  frames  downlink kbit/s  arrived p50 ms  p99 ms  decoded p50 ms"
-          "  p99 ms  late kf req  CPU s")  # fmt: skip
-    messages = sealed = faces = 0
+    print("who   peers  frames  kbit/s  arrived p50    p99  decoded p50    p99  CPU s")
+    messages = sealed = faces = late = 0
     for person in sorted(work.glob("*.json")):
         stats = json.loads(person.read_text())
         peers = stats["peers"].values()
@@ -143,14 +144,15 @@ def main() -> int:
         messages += sum(p["messages"] for p in peers)
         sealed += sum(p["bytes"]["sealed"] for p in peers)
         faces += len(peers)
-        late = stats.get("late_keyframe_requests", "")
+        late += stats.get("late_keyframe_requests", 0)
         cpu_s = stats.get("cpu_s", "")
-        print(f"{stats['name']:<11}  {len(peers):>5}  {sum(p['frames'] for p in peers):>6}  "
-              f"{down:>15.1f}  {_p50_p99(peers, 'arrival_ms')}  {_p50_p99(peers, 'latency_ms')}"
-              f"  {late:>11}  {cpu_s:>5}")  # fmt: skip
+        print(f"{stats['name']:<4}  {len(peers):>5}  {sum(p['frames'] for p in peers):>6}  "
+              f"{down:>6.1f}  {_p50_p99(peers, 'arrival_ms')}  {_p50_p99(peers, 'latency_ms')}"
+              f"  {cpu_s:>5}".rstrip())  # fmt: skip
     print(
         f"a face: {messages / max(1, faces) / clip_s:.1f} messages/s, "
-        f"{sealed / max(1, messages):.0f} bytes sealed each (NATS's MSG line not counted)"
+        f"{sealed / max(1, messages):.0f} bytes sealed each (NATS's MSG line not counted); "
+        f"{late} keyframe requests left unanswered"
     )
     print(f"relay: {cpu:.2f} CPU s over {elapsed:.1f} s ({100 * cpu / elapsed:.1f}% of a core), "
           f"largest RSS {most_rss / 2**20:.1f} MiB")  # fmt: skip
