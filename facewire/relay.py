@@ -5,7 +5,9 @@ on (the rooms' snapshots live in a KV bucket), limits on what one client may hol
 token every client must give. It routes sealed bundles: it never sees a face (protocol/
 sframe.py). ``--cluster`` and ``--routes`` join it to other relays; a room's participants
 then list several of them as ``--server``. ``--tls-cert`` and ``--tls-key`` make every client
-connection TLS (nats-server's ``tls {}`` block; facewire/tls.py makes a self-signed pair).
+connection TLS (nats-server's ``tls {}`` block; facewire/tls.py makes a self-signed pair), and
+the routes too, both ways (``cluster { tls {} }``: a node shows a certificate ``--route-ca``
+signed, by default the same one).
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ class RelayConfig:
     routes: list[str] = field(default_factory=list)  # nats-route://HOST:PORT of the others
     cluster_name: str = "facewire"
     tls: tuple[str, str] | None = None  # (certificate, key) files: clients must speak TLS
+    route_ca: str | None = None  # with tls and a cluster: whose nodes join (default: tls's cert)
 
     def text(self) -> str:
         """The configuration file (nats-server's own format)."""
@@ -131,6 +134,21 @@ class RelayConfig:
             lines.append(f"  listen: {quoted(f'{host}:{port}')}")
             if self.routes:
                 lines.append("  routes: [" + ", ".join(quoted(r) for r in self.routes) + "]")
+            if self.tls is not None:
+                # The routes are TLS both ways: a node is let in only with a certificate the
+                # route CA signed (by default the relay's own: a cluster sharing one
+                # self-signed certificate), and each checks the node it dials is that one.
+                cert, key = (os.path.abspath(f) for f in self.tls)
+                ca = os.path.abspath(self.route_ca or self.tls[0])
+                lines += [
+                    "  tls {",
+                    f"    cert_file: {quoted(cert)}",
+                    f"    key_file: {quoted(key)}",
+                    f"    ca_file: {quoted(ca)}",
+                    "    verify: true",
+                    f"    timeout: {TLS_TIMEOUT_S:g}",
+                    "  }",
+                ]
             lines.append("}")
         return "\n".join(lines) + "\n"
 
@@ -287,6 +305,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "(facewire keys --tls-for HOST makes a self-signed one)",
     )  # fmt: skip
     p.add_argument("--tls-key", metavar="FILE", help="the TLS certificate's private key (PEM)")
+    p.add_argument(
+        "--route-ca", metavar="FILE",
+        help="with --tls-cert and --cluster: the CA (PEM) whose certificates the cluster's "
+        "other relays must show on the routes (default: --tls-cert itself, one self-signed "
+        "certificate the whole cluster shares)",
+    )  # fmt: skip
     p.set_defaults(func=run)
 
 
@@ -310,6 +334,12 @@ def run(args: argparse.Namespace) -> int:
         from facewire.tls import readable
 
         config.tls = (readable(args.tls_cert, "--tls-cert"), readable(args.tls_key, "--tls-key"))
+    if args.route_ca:
+        if not (args.tls_cert and args.cluster):
+            raise ValueError("--route-ca needs --tls-cert and --cluster")
+        from facewire.tls import readable
+
+        config.route_ca = readable(args.route_ca, "--route-ca")
     relay = Relay(config)
     try:
         with StopSignal() as stop:

@@ -3,6 +3,7 @@ and ``facewire room --tls-ca``, with a real nats-server and real participants on
 
 from __future__ import annotations
 
+import asyncio
 import json
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from cryptography import x509
 
 from facewire.protocol.sframe import RoomKey
 from facewire.relay import Relay, RelayConfig, free_port
+from facewire.tls import client_context
 from tests.cli_call import Facewire, kill_all, run_facewire
 
 pytest.importorskip("nats")
@@ -119,3 +121,60 @@ def test_missing_or_bad_files_are_one_line(tmp_path: Path, key: Path) -> None:
     assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
     assert done.stderr.startswith("facewire: error: nats-server did not start: ")
     assert "private key does not match public key" in done.stderr
+
+
+@pytest.mark.timeout(120)
+def test_the_routes_between_relays_are_tls_and_a_stranger_is_kept_out(tmp_path: Path) -> None:
+    """Nodes a and b share a certificate: a message crosses the TLS route from a client of a
+    to a client of b. Node c has a certificate of its own and dials a and b as they dial it:
+    each route is refused, so c's client hears nothing of a's while b's hears it."""
+    cert, private = _certificate(tmp_path, "127.0.0.1")
+    (tmp_path / "c").mkdir()
+    other, other_key = _certificate(tmp_path / "c", "127.0.0.1")
+    routes = [free_port() for _ in range(3)]
+
+    def node(i: int, tls: tuple[Path, Path]) -> RelayConfig:
+        config = RelayConfig(port=free_port(), token="routes", name=f"n{i}")
+        config.tls = (str(tls[0]), str(tls[1]))
+        config.cluster = ("127.0.0.1", routes[i])
+        config.routes = [f"nats-route://127.0.0.1:{r}" for r in routes if r != routes[i]]
+        return config
+
+    configs = [node(0, (cert, private)), node(1, (cert, private)), node(2, (other, other_key))]
+    with Relay(configs[0]) as a, Relay(configs[1]) as b, Relay(configs[2]) as c:
+        heard = asyncio.run(_crossing(a, (b, cert), (c, other), ca=cert))
+    assert heard["b"] > 0, heard
+    assert heard["c"] == 0, heard
+
+
+async def _crossing(a: Relay, *listeners: tuple[Relay, Path], ca: Path) -> dict[str, int]:
+    """Messages a client of each listener's node heard while a client of ``a`` published,
+    until the first reached the first listener and for 2 s more (20 s at most)."""
+    import nats
+
+    heard: dict[str, int] = {}
+    clients = []
+    for relay, relay_ca in listeners:
+        name = relay.config.name.replace("n1", "b").replace("n2", "c")
+        heard[name] = 0
+        nc = await nats.connect(relay.config.client_url(), tls=client_context(str(relay_ca)))
+
+        async def count(msg: object, name: str = name) -> None:
+            heard[name] += 1
+
+        await nc.subscribe("fw.crossing", cb=count)
+        await nc.flush()
+        clients.append(nc)
+    publisher = await nats.connect(a.config.client_url(), tls=client_context(str(ca)))
+    clients.append(publisher)
+    loop = asyncio.get_running_loop()
+    deadline, until = loop.time() + 20.0, None
+    while loop.time() < (deadline if until is None else until):
+        await publisher.publish("fw.crossing", b"over the route")
+        await publisher.flush()
+        if until is None and heard[next(iter(heard))] > 0:
+            until = loop.time() + 2.0
+        await asyncio.sleep(0.1)
+    for nc in clients:
+        await nc.close()
+    return heard
