@@ -62,7 +62,14 @@ from facewire.protocol.datagram import (
     key_id_of,
     new_secret,
 )
-from facewire.protocol.packets import MediaKey
+from facewire.protocol.packets import (
+    KeyframeRequest,
+    Kind,
+    MediaKey,
+    PacketError,
+    decode,
+    header_byte,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -105,6 +112,7 @@ _TIMESPEC = struct.Struct("@ll")
 _ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 MAX_STAMP_AGE_S = 1.0
 RECEIVE_BUFFER_BYTES = 1 << 20
+KEYFRAME_REQUEST_BYTE = header_byte(Kind.KEYFRAME_REQUEST)
 
 
 def frames_per_datagram(budget_bps: float, fps: float, lossy: bool = False) -> int:
@@ -267,6 +275,8 @@ class SenderMediaPath(_Path):
         self._by_identity: dict[bytes, _Receiver] = {}
         self._by_key: dict[int, _Receiver] = {}
         self._next_key = int.from_bytes(os.urandom(1), "big")
+        #: Keyframe requests that came in the receivers' datagrams, for the caller to take.
+        self.keyframe_requests: list[KeyframeRequest] = []
 
     def offer(self, identity: bytes, now: float) -> MediaKey:
         """A new key for the receiver ``identity`` (replacing any it had)."""
@@ -307,11 +317,15 @@ class SenderMediaPath(_Path):
             opened = self._open(peer.opener, data)
             if opened is None:
                 continue
-            try:  # a receiver's datagram carries reports only
+            # A receiver's datagram carries reports, and its keyframe requests (a copy of
+            # those it sends on DEALER: over a lossy link TCP holds a lost request, and every
+            # one behind it, for a retransmission, and the picture stays frozen meanwhile).
+            try:
                 reports = [Report.parse(e) for e in opened[1] if e[0] == REPORT]
-            except BundleError:
-                reports = []
-            if len(reports) != len(opened[1]):
+                requests = [decode(e) for e in opened[1] if e[0] == KEYFRAME_REQUEST_BYTE]
+            except (BundleError, PacketError):
+                reports, requests = [], []
+            if len(reports) + len(requests) != len(opened[1]):
                 self.counts.drop("malformed")
                 continue
             fresh = not peer.live(now)
@@ -322,6 +336,7 @@ class SenderMediaPath(_Path):
                 peer.controller.on_report(
                     now, report.highest, report.arrival_ms, report.received, report.received_bytes
                 )
+            self.keyframe_requests += [r for r in requests if isinstance(r, KeyframeRequest)]
 
     def _opened(self, peer: _Receiver, now: float) -> None:
         if not peer.live_told or peer.fallback_told:
@@ -628,6 +643,13 @@ class ReceiverMediaPath(_Path):
         if now - self._last_hello >= interval:
             self._last_hello = now
             self._send(b"")
+
+    def send_request(self, request: KeyframeRequest, now: float) -> bool:
+        """A keyframe request in a datagram of its own, where the path is live."""
+        if self._sealer is None or not self.live(now):
+            return False
+        self._send(pack([bytes(request)]))
+        return True
 
     def _send(self, bundle: bytes) -> None:
         address = self._peer or self.dest

@@ -570,8 +570,7 @@ class SenderEndpoint(_Endpoint):
         if self._media is None:
             return
         now = self._clock()
-        self._media.read(now)
-        self._media.service(now)
+        self._read_media(now)
         live = self._media.live(now)
         self._bundler.redundant = any(p.controller.lossy for p in live)
         self._bundler.losing = any(p.controller.losing for p in live)
@@ -630,6 +629,17 @@ class SenderEndpoint(_Endpoint):
             self._last_seq = packet.seq
         elif isinstance(packet, DeltaFrame) and seq is not None:
             self._last_seq = seq
+
+    def _read_media(self, now: float) -> None:
+        """The receivers' datagrams: reports to the rate control, keyframe requests to the
+        back channel's inbox."""
+        assert self._media is not None
+        self._media.read(now)
+        self._media.service(now)
+        for request in self._media.keyframe_requests:
+            self._accept(request, bytes(request))
+            self._inbox.append(request)
+        self._media.keyframe_requests.clear()
 
     def _pub_send(self, data: bytes) -> None:
         # Reading EVENTS makes libzmq take in its pending commands now (a plain send only does
@@ -736,9 +746,7 @@ class SenderEndpoint(_Endpoint):
             self._read_router(timeout_ms)
         self._read_router(0)
         if self._media is not None:
-            now = self._clock()
-            self._media.read(now)
-            self._media.service(now)
+            self._read_media(self._clock())
         out = list(self._inbox)
         self._inbox.clear()
         return out
@@ -1247,8 +1255,12 @@ class ReceiverEndpoint(_Endpoint):
             self._late_reported = now
 
     def request_keyframe(self, seq: int) -> None:
-        """Ask the sender for a keyframe; ``seq`` is the last frame decoded."""
-        self._send(KeyframeRequest(seq))
+        """Ask the sender for a keyframe; ``seq`` is the last frame decoded. On DEALER, and
+        in a datagram too where the media path is live (docs/protocol.md 8.6)."""
+        request = KeyframeRequest(seq)
+        self._send(request)
+        if self._media is not None:
+            self._media.send_request(request, self._clock())
 
     def send_stats(self, values: Mapping[str, float]) -> None:
         """Send named statistics (finite floats) to the sender."""

@@ -10,7 +10,7 @@ import numpy as np
 from transport_helpers import TIMEOUT_MS, frame, join, snapshot
 
 from facewire.protocol.media_path import BUCKET_S, DATAGRAM_COST
-from facewire.protocol.packets import RemPatch
+from facewire.protocol.packets import KeyframeRequest, RemPatch
 from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 
@@ -19,12 +19,8 @@ def test_a_reference_never_overtakes_the_image_it_names() -> None:
         sender.set_snapshot(snapshot(seq=0))
         with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
             join(sender, receiver)
+            open_media_path(sender, receiver)
             deadline = time.monotonic() + TIMEOUT_MS / 1000
-            while not (receiver.on_udp and sender.media_figures()["receivers_on_udp"]):
-                # The path opens with the receiver's first hello and the sender's answer.
-                assert time.monotonic() < deadline, "the media path did not open"
-                receiver.recv(10)
-                sender.end_frame()
             image = RemPatch(1, "eye_left", "webp", _webp(), 10.0, 0.5, 0.5)
             reference = RemPatch.referring(2, "eye_left", 1, 10.0, 0.5, 0.5)
             assert len(bytes(image)) > 600 and len(bytes(reference)) < 64
@@ -44,6 +40,34 @@ def test_a_reference_never_overtakes_the_image_it_names() -> None:
             assert patches == [1, 2]
 
 
+def test_a_keyframe_request_comes_by_both_paths() -> None:
+    """On DEALER, and in a datagram that no TCP retransmission holds up."""
+    with SenderEndpoint(plain=True) as sender:
+        sender.set_snapshot(snapshot(seq=0))
+        with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
+            join(sender, receiver)
+            open_media_path(sender, receiver)
+            sender.poll(timeout_ms=0)
+            receiver.request_keyframe(12)
+            requests: list[KeyframeRequest] = []
+            deadline = time.monotonic() + TIMEOUT_MS / 1000
+            while len(requests) < 2:
+                assert time.monotonic() < deadline, f"requests: {requests}"
+                requests += [
+                    p for p in sender.poll(timeout_ms=10) if isinstance(p, KeyframeRequest)
+                ]
+            assert requests == [KeyframeRequest(12)] * 2
+
+
+def open_media_path(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> None:
+    """Until the path is open: the receiver's first hello and the sender's answer."""
+    deadline = time.monotonic() + TIMEOUT_MS / 1000
+    while not (receiver.on_udp and sender.media_figures()["receivers_on_udp"]):
+        assert time.monotonic() < deadline, "the media path did not open"
+        receiver.recv(10)
+        sender.end_frame()
+
+
 def _webp(seed: int = 1) -> bytes:
     import cv2
 
@@ -61,11 +85,7 @@ def test_a_keyframe_leaves_at_once_but_brings_patches_only_within_the_budget() -
         sender.set_snapshot(snapshot(seq=0))
         with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
             join(sender, receiver)
-            deadline = time.monotonic() + TIMEOUT_MS / 1000
-            while not (receiver.on_udp and sender.media_figures()["receivers_on_udp"]):
-                assert time.monotonic() < deadline, "the media path did not open"
-                receiver.recv(10)
-                sender.end_frame()
+            open_media_path(sender, receiver)
             for seq in range(1, 4):  # several images' worth: far more than the budget's share
                 sender.publish(RemPatch(seq, "eye_left", "webp", _webp(seed=seq), 10.0, 0.5, 0.5))
             sender.publish(frame(1))

@@ -43,6 +43,7 @@ from facewire.protocol.packets import (
     DeltaFrame,
     Heartbeat,
     KeyFrame,
+    KeyframeRequest,
     MediaKey,
     RemPatch,
     decode,
@@ -488,6 +489,28 @@ def test_reports_reach_the_senders_controller(call: Call) -> None:
     assert peer.controller.last.received_bps == pytest.approx(30 * 8 * wire, rel=0.1)
     assert peer.controller.last.loss == 0
     assert call.sender.budget_bps(call.t, 1e6) == peer.controller.rate_bps
+
+
+def test_a_keyframe_request_crosses_in_a_datagram_too(open_call: Call) -> None:
+    """Over a lossy link TCP holds a lost request (and each one behind it) for a
+    retransmission while the picture stays frozen: a copy goes in a datagram of its own."""
+    call = open_call
+    assert call.receiver.send_request(KeyframeRequest(41), call.t)
+    call.until(lambda: bool(call.sender.keyframe_requests))
+    assert call.sender.keyframe_requests == [KeyframeRequest(41)]
+    assert call.sender.counts.dropped == {}
+
+
+def test_a_receivers_datagram_with_anything_else_is_malformed(open_call: Call) -> None:
+    """Reports and keyframe requests only: a frame packet the other way is refused whole."""
+    call = open_call
+    sealer = call.receiver._sealer
+    assert sealer is not None
+    call.relay.sock.sendto(
+        sealer.seal(pack([bytes(KeyframeRequest(7)), delta(1)])), call.sender.sock.getsockname()
+    )
+    call.until(lambda: call.sender.counts.dropped.get("malformed") == 1)
+    assert call.sender.keyframe_requests == []
 
 
 def test_four_reports_a_second_whenever_the_loop_comes_by(open_call: Call) -> None:
