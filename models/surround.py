@@ -27,9 +27,19 @@ moved away, that painted-out scene shows. Then nothing holds the top of the head
 still ring above the eyes moves with the head as the head ring does, so the hair goes
 wherever the head goes. Held still instead, a head that shrinks (a person leaning back)
 pulled its hair into streaks up to the still ring, and past the frame's top edge the warp's
-reflected border mirrored hair into them. What the person layer would take from outside the
-snapshot frame is not the person's: the source is padded with the frame's reflection, whose
-person layer is empty, and the scene shows there.
+reflected border mirrored hair into them. What the person layer would take from above the
+snapshot frame, or beside it, is not the person's: the source is padded with the frame's
+reflection, whose person layer is empty there, and the scene shows (a shoulder cut by the
+side may end in a straight edge; carried on, it went on to the frame's edge where the camera
+showed it ending, and mirrored it came back as a second shoulder). Below the frame it is: a
+body cut by the frame's bottom edge goes straight on past it, so a body that shrinks
+(models/body.py) still reaches the bottom.
+
+The rest of the person (shoulders, chest, arms) moves by the body's own similarity when one
+is given (``body``: the person's pixels from the snapshot frame to this one, camera
+included): the still ring's points below the mouth and the neck's share of the head ring go
+with it instead of the camera, and so does the person layer beyond the head's reach. Where
+the body moved away the painted-out scene shows.
 
 The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
 per frame with its centres at the current control points, evaluated on a coarse grid and
@@ -186,11 +196,14 @@ class SurroundWarp:
             weight, painted = _person_layer(person)
             alpha = np.round(255.0 * weight).astype(np.uint8)
             self._scene = _paint_out(background, painted)
-        # Padded by the frame's reflection, whose person layer is empty: what the warp takes
-        # from beyond the snapshot frame's edges is scene, never a mirrored person.
+        # Padded by the frame's reflection, whose person layer is empty above and beside the
+        # frame: what the warp takes from there is scene, never mirrored hair (nor a mirrored
+        # shoulder beside a body that shrank). Below the frame a body cut by its bottom edge
+        # goes straight on, as bodies do.
         pad = self._pad
         colour = cv2.copyMakeBorder(background, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
-        layer = cv2.copyMakeBorder(alpha, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+        below = cv2.copyMakeBorder(alpha, 0, pad, 0, 0, cv2.BORDER_REPLICATE)
+        layer = cv2.copyMakeBorder(below, pad, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
         self._source = np.dstack([colour, layer])
 
     def controls(
@@ -200,7 +213,8 @@ class SurroundWarp:
         snapshot frame (face outline, head ring, still ring).
 
         ``outline`` (k, 3) is the face outline now, image space ((k, 2): flat); ``camera`` an
-        optional (3, 3) homography taking snapshot-frame background pixels to this frame's.
+        optional (3, 3) homography taking snapshot-frame pixels to this frame's of what does
+        not follow the head (the scene, or with :meth:`warp`'s ``body`` the person's body).
         """
         outline3 = _in_space(outline)
         if outline3.shape != self._outline3.shape:
@@ -231,10 +245,11 @@ class SurroundWarp:
         """Full-size float32 maps (x, y) for ``cv2.remap``: the snapshot pixel each output
         pixel shows; with ``box`` (x0, y0, x1, y1), the maps of that part of the frame.
 
-        The displacement is the camera's (exact, everywhere) plus the head's: a thin-plate
-        spline through the head's controls, faded to nothing just beyond the still ring, so
-        the scene further out is untouched by the head. ``origin``: where the snapshot frame's
-        pixel (0, 0) lies in the image remapped (0, or the warp's padding).
+        The displacement is the camera's (exact, everywhere; or the body's, for the person
+        layer) plus the head's: a thin-plate spline through the head's controls, faded to
+        nothing just beyond the still ring, so the scene further out is untouched by the
+        head. ``origin``: where the snapshot frame's pixel (0, 0) lies in the image remapped
+        (0, or the warp's padding).
         """
         camera = None if _is_still(camera) else camera
         now, then = self.controls(outline, camera)
@@ -266,10 +281,19 @@ class SurroundWarp:
         outline: np.ndarray,
         camera: np.ndarray | None = None,
         box: tuple[int, int, int, int] | None = None,
+        body: np.ndarray | None = None,
     ) -> np.ndarray:
         """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along; with
-        ``box`` (x0, y0, x1, y1) only that part of it (the sender measures around the face)."""
-        map_x, map_y = self.source_map(outline, camera, box, self._pad)
+        ``box`` (x0, y0, x1, y1) only that part of it (the sender measures around the face).
+        ``body``: an optional (3, 3) homography taking the snapshot frame's person pixels to
+        this frame's (the camera's motion included): the person beyond the head's reach
+        moves by it, the scene by ``camera`` (without a person layer, all by ``camera``)."""
+        own = (
+            self._layered
+            and body is not None
+            and not np.allclose(body, np.eye(3) if camera is None else camera, rtol=0.0, atol=1e-9)
+        )
+        map_x, map_y = self.source_map(outline, body if own else camera, box, self._pad)
         bx0, by0, bx1, by1 = (0, 0, self.width, self.height) if box is None else box
         # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
         # shows as a black band.
@@ -280,8 +304,9 @@ class SurroundWarp:
         if not self._layered:
             return moved
         # Out of the head's reach the person and the scene move alike (with the camera), and
-        # there they make up the snapshot frame itself: ``moved`` is already right.
-        (x0, x1), (y0, y1) = self._box
+        # there they make up the snapshot frame itself: ``moved`` is already right. A body
+        # moving on its own takes the person apart from the scene everywhere.
+        (x0, x1), (y0, y1) = ((0, self.width), (0, self.height)) if own else self._box
         x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
         if x1 <= x0 or y1 <= y0:
             return moved

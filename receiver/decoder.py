@@ -15,6 +15,7 @@ import logging
 import cv2
 import numpy as np
 
+from facewire.models.body import BODY, BODY_SIZE
 from facewire.models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
 from facewire.models.edge import EDGE, EDGE_POINTS, EDGE_SIZE, correct
 from facewire.models.face_channels import (
@@ -108,6 +109,7 @@ class FaceDecoder:
             LIPS: LIPS_SIZE,
             CAMERA: CAMERA_SIZE,
             EDGE: EDGE_SIZE,
+            BODY: BODY_SIZE,
         }
         got = {name: size for name, size, _ in snapshot.channels}
         if got != expected:
@@ -287,6 +289,13 @@ class FaceDecoder:
         shift = dequantise(values.values[CAMERA], spec.step)
         return homography_from_corners(shift, self.background.shape[1], self.background.shape[0])
 
+    def body(self, values: FrameValues) -> np.ndarray:
+        """(3, 3) similarity of the body's own motion since the snapshot frame, before the
+        camera's (models/body.py)."""
+        spec = next(s for s in self.specs if s.name == BODY)
+        shift = dequantise(values.values[BODY], spec.step)
+        return homography_from_corners(shift, self.background.shape[1], self.background.shape[0])
+
     def image_vertices(self, values: FrameValues) -> np.ndarray:
         """(n, 3) deformed, posed vertices in the sender's image space (pixels)."""
         pose, params, lips = self.parameters(values)
@@ -304,17 +313,23 @@ class FaceDecoder:
         if self.rem is not None and self.rem.due(values.seq):
             self.renderer.set_texture(self.rem.texture)
         return self.draw_vertices(
-            self.image_vertices(values), self.camera(values), self.edge(values)
+            self.image_vertices(values), self.camera(values), self.edge(values), self.body(values)
         )
 
     def draw_vertices(
-        self, vertices: np.ndarray, camera: np.ndarray, edge: np.ndarray | None = None
+        self,
+        vertices: np.ndarray,
+        camera: np.ndarray,
+        edge: np.ndarray | None = None,
+        body: np.ndarray | None = None,
     ) -> np.ndarray:
         """:meth:`reconstruct` from the face's (n, 3) vertices in image space (pixels), the
-        camera's homography of :meth:`camera` and the edge's corrections of :meth:`edge`
-        (the playout draws pictures between two frames this way)."""
+        camera's homography of :meth:`camera`, the edge's corrections of :meth:`edge` and
+        the body's motion of :meth:`body` (the playout draws pictures between two frames
+        this way)."""
         outline = vertices[self._outline, :2]
-        background = self.surround.warp(vertices[self._outline], camera)
+        person = None if body is None else camera @ body
+        background = self.surround.warp(vertices[self._outline], camera, body=person)
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from facewire.models.body import BODY, BODY_SIZE, body_step
 from facewire.models.camera import (
     CAMERA,
     CAMERA_SIZE,
@@ -55,6 +56,7 @@ from facewire.protocol.constants import CALL, UINT32_MAX
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
 from facewire.protocol.quant import dequantise, quantise
+from facewire.sender.body_motion import BodyTracker
 from facewire.sender.camera_motion import CameraTracker
 from facewire.sender.capture import CapturedFrame
 from facewire.sender.channel_filter import ChannelSmoother
@@ -142,7 +144,9 @@ class FaceEncoder:
     tracked landmarks are moved to where the face the receiver draws matches the frame before
     they are fitted (:mod:`facewire.sender.synthesis`). With ``edge`` (the default) each packet
     carries the corrections that put the face's edge and surroundings where the frame shows
-    them (:mod:`facewire.sender.edge`); without, they stay zero.
+    them (:mod:`facewire.sender.edge`); without, they stay zero. With ``body`` (the default)
+    the person's body below the head is followed (:mod:`facewire.sender.body_motion`), and
+    the receiver moves it so; without, it moves with the scene.
     """
 
     def __init__(
@@ -162,6 +166,7 @@ class FaceEncoder:
         edge: bool = True,
         edge_kbps: float | None = EDGE_KBPS,
         scenes: bool = True,
+        body: bool = True,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -185,6 +190,10 @@ class FaceEncoder:
         self._last_values: dict[str, np.ndarray] | None = None
         self.camera: CameraTracker | None = None
         self._camera_shift = np.zeros(CAMERA_SIZE)
+        self.use_body = body
+        #: The body's motion below the head (None: not followed, it moves with the scene).
+        self.body: BodyTracker | None = None
+        self._body_shift = np.zeros(BODY_SIZE)
         self.frames_untracked = 0
         self.values_clipped = 0
         self.smoothing = smoothing
@@ -308,6 +317,7 @@ class FaceEncoder:
         # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
         self.steps[CAMERA] = camera_step(2 * self.budget_px)
         self.steps[EDGE] = edge_step(self.budget_px)
+        self.steps[BODY] = body_step(self.budget_px)
         specs = [
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
         ] + [
@@ -315,11 +325,14 @@ class FaceEncoder:
             ChannelSpec(LIPS, LIPS_SIZE, self.steps[LIPS]),
             ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
             ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
+            ChannelSpec(BODY, BODY_SIZE, self.steps[BODY]),
         ]
-        self.camera = CameraTracker(
-            frame.image, points[self.canonical.outline, :2], person_mask(frame.image)
-        )
+        people = person_mask(frame.image)
+        outline = points[self.canonical.outline, :2]
+        self.camera = CameraTracker(frame.image, outline, people)
         self._camera_shift = np.zeros(CAMERA_SIZE)
+        self.body = BodyTracker(frame.image, outline, people) if self.use_body else None
+        self._body_shift = np.zeros(BODY_SIZE)
         interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
         self._channels = ChannelEncoder(
             specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
@@ -440,6 +453,10 @@ class FaceEncoder:
         if self.camera is not None:
             homography = self.camera.update(image, points[self.canonical.outline, :2])
             self._camera_shift = corners_from_homography(homography, self.width, self.height)
+            if self.body is not None:
+                # Sent relative to the scene's motion: a person sitting still sends nothing.
+                body = np.linalg.solve(homography, self.body.update(image))
+                self._body_shift = corners_from_homography(body, self.width, self.height)
         return pose, params
 
     def projected(self, params: np.ndarray) -> np.ndarray:
@@ -450,7 +467,7 @@ class FaceEncoder:
         self, pose: Pose, params: np.ndarray, points: np.ndarray | None = None
     ) -> dict[str, np.ndarray]:
         """Float channel values of a pose and wire parameters (before quantisation), with the
-        camera's motion measured by the last :meth:`analyse`, and the inner lips' opening
+        camera's and the body's motion measured by the last :meth:`analyse`, the inner lips' opening
         that the wires leave on ``points`` (n, 3), the tracked face in image space (none
         without them)."""
         assert self.wires is not None and self.mouth is not None, "start() first"
@@ -461,6 +478,7 @@ class FaceEncoder:
             deformed = self.wires.deform(self.rest_params + self.basis.params(values[WIRE]))
             values[LIPS] = self.mouth.values(pose.inverse(points), deformed)
         values[CAMERA] = self._camera_shift
+        values[BODY] = self._body_shift
         return values
 
     @property
@@ -574,7 +592,11 @@ class FaceEncoder:
             return np.zeros(EDGE_SIZE)
         shift = dequantise(values[CAMERA], self.steps[CAMERA])
         camera = homography_from_corners(shift, self.width, self.height)
-        edge = self.edge.measure(frame.image, vertices[self.canonical.outline], camera).ravel()
+        body = camera @ homography_from_corners(
+            dequantise(values[BODY], self.steps[BODY]), self.width, self.height
+        )
+        outline = vertices[self.canonical.outline]
+        edge = self.edge.measure(frame.image, outline, camera, body).ravel()
         if self._edge_smoother is None:
             return edge
         return self._edge_smoother({EDGE: edge}, frame.index / self.fps)[EDGE]

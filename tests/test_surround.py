@@ -266,3 +266,36 @@ def test_the_person_layer_ends_at_the_frame_edge() -> None:
     out = SurroundWarp(image, o, person).warp(now)
     assert red(out)[:26, 200:280].mean() < 0.05
     assert red(out)[34:60, 225:255].mean() > 0.95
+
+
+def test_the_body_moves_the_person_below_the_head_and_the_scene_stays() -> None:
+    """The person leans back: head and body shrink to 0.8 about the face's centre. The body
+    shrinks with the body's similarity (beyond the head's reach too), still reaching the
+    frame's bottom edge; the stripes beside it stay where they were."""
+    image, person = person_scene()
+    o = outline()
+    centre = o.mean(0)
+    body = np.array([[0.8, 0.0, 0.2 * centre[0]], [0.0, 0.8, 0.2 * centre[1]], [0.0, 0.0, 1.0]])
+    now = centre + 0.8 * (o - centre)
+    out = SurroundWarp(image, o, person).warp(now, body=body)
+    still = SurroundWarp(image, o, person).warp(now)
+    # The body was 150..330 wide: now 168..312 (0.8 about x = 240).
+    row = np.s_[290:340]
+    assert red(out)[row, 176:304].mean() > 0.95
+    assert red(out)[row, 150:162].mean() < 0.05 and red(out)[row, 318:330].mean() < 0.05
+    assert red(still)[row, 150:162].mean() > 0.95  # without it the body stays as big
+    # It goes on past the bottom edge, which it reached in the snapshot frame.
+    assert red(out)[H - 12 :, 176:304].mean() > 0.95
+    # Beside the body, beyond the head's reach, the scene has not moved.
+    beside = np.s_[250:H, 360:470]
+    assert np.abs(out[beside].astype(int) - image[beside]).mean() < 1.0
+
+
+def test_a_body_moving_with_the_camera_is_the_camera_alone() -> None:
+    image, person = person_scene()
+    o = outline()
+    warp = SurroundWarp(image, o, person)
+    camera = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0], [0.0, 0.0, 1.0]])
+    assert np.array_equal(
+        warp.warp(o + [6.0, -4.0], camera, body=camera), warp.warp(o + [6.0, -4.0], camera)
+    )
