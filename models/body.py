@@ -22,8 +22,13 @@ BODY = "body"
 BODY_SIZE = CAMERA_SIZE
 
 
+#: The body's error budget, in units of the face's: the silhouette is seen to a pixel or so,
+#: not to the face's quarter pixel, and a person's sway is most of what would be sent.
+BUDGET_PER_FACE = 4.0
+
+
 def body_step(budget_px: float) -> float:
-    """The ``body`` channel's step, pixels, for a face whose error budget is ``budget_px``:
-    twice the face's, as the camera's motion and the edge's corrections get (no pixel of the
-    frame moves further than twice a value's error, models/camera.py)."""
-    return camera_step(2 * budget_px)
+    """The ``body`` channel's step, pixels, for a face whose error budget is ``budget_px``
+    (no pixel of the frame moves further than twice a value's error, models/camera.py: 1 px
+    at the default 0.25)."""
+    return camera_step(BUDGET_PER_FACE * budget_px)

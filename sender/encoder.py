@@ -64,7 +64,7 @@ from facewire.sender.edge import EdgeMeter
 from facewire.sender.fit_residual import FitResidual
 from facewire.sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from facewire.sender.lift import MarkerFaceTracker, MarkerFit
-from facewire.sender.rate_cap import EDGE_KBPS, GEOMETRY_KBPS, RateCap
+from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from facewire.sender.rem import RemEncoder
 from facewire.sender.scene_cut import SceneCut, another_face, face_box
 from facewire.sender.synthesis import FaceSynthesis
@@ -167,6 +167,7 @@ class FaceEncoder:
         edge_kbps: float | None = EDGE_KBPS,
         scenes: bool = True,
         body: bool = True,
+        body_kbps: float | None = BODY_KBPS,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -194,6 +195,10 @@ class FaceEncoder:
         #: The body's motion below the head (None: not followed, it moves with the scene).
         self.body: BodyTracker | None = None
         self._body_shift = np.zeros(BODY_SIZE)
+        #: The body's own rate cap (None: its values change whenever they are measured).
+        self.body_cap = None if body_kbps is None else RateCap(body_kbps, fps)
+        #: Bytes of the frame packets that were the body's share.
+        self.body_bytes = 0.0
         self.frames_untracked = 0
         self.values_clipped = 0
         self.smoothing = smoothing
@@ -546,7 +551,8 @@ class FaceEncoder:
             values = self._quantise(floats, self._last_values)
             vertices = self.rebuilt_vertices(values)
             floats[EDGE] = self._edge(frame, vertices, values)
-            values[EDGE] = self._quantise_edge(floats[EDGE], sent[EDGE])
+            values[EDGE] = self._quantise_own(EDGE, floats[EDGE], sent[EDGE], self.edge_cap)
+            values[BODY] = self._quantise_own(BODY, floats[BODY], sent[BODY], self.body_cap)
             self.intended = floats
             self._last_values = values
         patches: list[RemPatch] = []
@@ -601,29 +607,35 @@ class FaceEncoder:
             return edge
         return self._edge_smoother({EDGE: edge}, frame.index / self.fps)[EDGE]
 
-    def _quantise_edge(self, floats: np.ndarray, sent: np.ndarray) -> np.ndarray:
-        """The edge corrections' values: ``sent`` kept while their bucket is empty, and a
-        wider hysteresis as it runs low (as the face's under the geometry's cap)."""
-        if self.edge_cap is None:
-            return quantise(floats, self.steps[EDGE], sent, HYSTERESIS)[0]
-        if not self.edge_cap.next_frame():
+    def _quantise_own(
+        self, name: str, floats: np.ndarray, sent: np.ndarray, cap: RateCap | None
+    ) -> np.ndarray:
+        """The values of a channel with a bucket of its own (the edge's corrections, the
+        body's motion): ``sent`` kept while it is empty, and a wider hysteresis as it runs
+        low (as the face's under the geometry's cap)."""
+        if cap is None:
+            return quantise(floats, self.steps[name], sent, HYSTERESIS)[0]
+        if not cap.next_frame():
             return sent
-        slack = self.edge_cap.slack()
-        return quantise(floats, self.steps[EDGE], sent, HYSTERESIS + slack)[0]
+        return quantise(floats, self.steps[name], sent, HYSTERESIS + cap.slack())[0]
 
     def _spend(self, nbytes: int, coded_before: dict[str, float]) -> None:
         """Take a sent frame packet's ``nbytes`` from the rate caps: the edge corrections'
-        share of the bits coded in it (``coded_before``: the channel coder's counts before
-        it) from their bucket, the rest from the geometry's."""
+        and the body's shares of the bits coded in it (``coded_before``: the channel coder's
+        counts before it) from their buckets, the rest from the geometry's."""
         assert self._channels is not None  # a packet was coded
         added = {k: v - coded_before.get(k, 0.0) for k, v in self._channels.coded_bits.items()}
         total = sum(added.values())
         edge = nbytes * added.get(EDGE, 0.0) / total if total > 0 else 0.0
+        body = nbytes * added.get(BODY, 0.0) / total if total > 0 else 0.0
         self.edge_bytes += edge
+        self.body_bytes += body
         if self.edge_cap is not None:
             self.edge_cap.spend(edge)
+        if self.body_cap is not None:
+            self.body_cap.spend(body)
         if self.rate_cap is not None:
-            self.rate_cap.spend(nbytes - edge)
+            self.rate_cap.spend(nbytes - edge - body)
 
     def _quantise(
         self, floats: dict[str, np.ndarray], previous: dict[str, np.ndarray] | None

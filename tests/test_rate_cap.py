@@ -84,8 +84,9 @@ def test_a_call_over_its_cap_holds_frames_and_keeps_to_it(clip: list[CapturedFra
     assert capped.rate_cap is not None and capped.rate_cap.held > 20
     assert keyframes == 2  # the first, and the periodic one at 4 s
     start = 0.6 * 1000 / 8 * START_S
-    # The face's edge corrections ride in the same packets, on a bucket of their own.
-    face = nbytes - capped.edge_bytes
+    # The face's edge corrections and the body's motion ride in the same packets, each on a
+    # bucket of its own.
+    face = nbytes - capped.edge_bytes - capped.body_bytes
     assert face <= 0.6 * 1000 / 8 * seconds + start + 60  # the keyframe's debt at most
     edge = EDGE_KBPS * 1000 / 8
     assert 0 < capped.edge_bytes <= edge * (seconds + START_S) + 20  # a packet's share of debt
