@@ -2,7 +2,7 @@
 
 Usage:
   PYOPENGL_PLATFORM=egl python benchmarks/bench_body.py --input CLIP [--input CLIP ...]
-      [--motion lean|shift|none] [--frames N] [--no-body] [--pictures DIR]
+      [--motion lean|shift|none] [--frames N] [--no-body] [--no-refresh] [--pictures DIR]
 
 Each clip's person (the segmentation of models/person.py, frame by frame) is put back over
 the scene with the person painted out (tests/body_clip.py): ``lean`` scales the person from
@@ -14,8 +14,9 @@ silhouette (segmentation of the input against that of the output, IoU; the lowes
 frames and where), face and head SSIM (facewire/quality.py, regions from the input's own
 landmarks), and what the ``body`` channel cost (kbit/s of the frame bodies' coded bits).
 ``--no-body`` runs the sender without following the body (its values stay zero: the body
-moves with the scene, as before the channel). ``--pictures DIR`` writes input | output every
-15 frames.
+moves with the scene, as before the channel); ``--no-refresh`` without the refreshes of what
+the model misses (sender/refresh.py), to see the body alone. ``--pictures DIR`` writes
+input | output every 15 frames.
 """
 
 from __future__ import annotations
@@ -73,9 +74,16 @@ def moved(frames: list[np.ndarray], motion: str, fps: float) -> list[np.ndarray]
     return frames
 
 
-def run(frames: list[np.ndarray], fps: float, body: bool, pictures: Path | None, name: str):
+def run(
+    frames: list[np.ndarray],
+    fps: float,
+    body: bool,
+    refresh: bool,
+    pictures: Path | None,
+    name: str,
+) -> dict[str, float]:
     h, w = frames[0].shape[:2]
-    encoder = FaceEncoder(w, h, fps, body=body)
+    encoder = FaceEncoder(w, h, fps, body=body, refresh=refresh)
     tracker = LandmarkTracker()
     ious, face, head = [], [], []
     with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as call:
@@ -100,6 +108,9 @@ def run(frames: list[np.ndarray], fps: float, body: bool, pictures: Path | None,
         "head": float(np.nanmean(head)),
         "body_kbps": bits.get(BODY, 0.0) / seconds / 1000,
         "frame_kbps": sum(bits.values()) / seconds / 1000,
+        "refresh_kbps": 0.0
+        if encoder.refresh is None
+        else encoder.refresh.bytes * 8 / seconds / 1000,
     }
 
 
@@ -109,19 +120,22 @@ def main() -> None:
     parser.add_argument("--motion", choices=("lean", "shift", "none"), default="lean")
     parser.add_argument("--frames", type=int, default=90)
     parser.add_argument("--no-body", action="store_true")
+    parser.add_argument("--no-refresh", action="store_true")
     parser.add_argument("--pictures", type=Path)
     args = parser.parse_args()
     cv2.setNumThreads(1)
-    print(f"motion {args.motion}, body {'off' if args.no_body else 'followed'}")
+    body = "off" if args.no_body else "followed"
+    print(f"motion {args.motion}, body {body}, refreshes {'off' if args.no_refresh else 'on'}")
     for path in args.input:
         frames, fps = read(path, args.frames)
         frames = moved(frames, args.motion, fps)
         name = f"{Path(path).stem}_{args.motion}"
-        r = run(frames, fps, not args.no_body, args.pictures, name)
+        r = run(frames, fps, not args.no_body, not args.no_refresh, args.pictures, name)
         print(
             f"{Path(path).name}: silhouette IoU min {r['iou_min']:.3f} (frame {r['iou_min_at']})"
             f", mean {r['iou_mean']:.3f}; face SSIM {r['face']:.4f}, head {r['head']:.4f}; "
-            f"body {r['body_kbps']:.2f} kbit/s of {r['frame_kbps']:.2f} coded"
+            f"body {r['body_kbps']:.2f} kbit/s of {r['frame_kbps']:.2f} coded; "
+            f"refreshes {r['refresh_kbps']:.2f} kbit/s"
         )
 
 

@@ -214,6 +214,10 @@ def _call(
         # each on a budget of its own.
         "edge_kbps": encoder.edge_bytes * 8 / duration / 1000,
         "body_kbps": encoder.body_bytes * 8 / duration / 1000,
+        # What the model misses, sent as it is: a part of `rem` (models/refresh.py).
+        "refresh_kbps": 0.0
+        if encoder.refresh is None
+        else encoder.refresh.bytes * 8 / duration / 1000,
         "bytes": traffic,
         "messages": messages,
         "encrypted": True,

@@ -33,6 +33,7 @@ from facewire.protocol.packets import (
     KeyFrame,
     KeyframeRequest,
     PacketError,
+    Refresh,
     RemPatch,
     Snapshot,
     decode,
@@ -135,7 +136,7 @@ class Peer:
                 picture = self._record(values)
                 if self.gallery is not None:
                     self.gallery.show(self.name, picture, latency_ms, 0)
-        elif isinstance(packet, RemPatch):
+        elif isinstance(packet, (RemPatch, Refresh)):
             self.decoder.offer(packet)
         elif isinstance(packet, AudioFrame):
             figures.audio_packets += 1

@@ -54,7 +54,7 @@ from facewire.protocol import mesh_code
 from facewire.protocol.channels import ChannelEncoder, ChannelSpec
 from facewire.protocol.constants import CALL, UINT32_MAX
 from facewire.protocol.images import decode_image
-from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
+from facewire.protocol.packets import DeltaFrame, KeyFrame, Refresh, RemPatch, Snapshot
 from facewire.protocol.quant import dequantise, quantise
 from facewire.sender.body_motion import BodyTracker
 from facewire.sender.camera_motion import CameraTracker
@@ -65,6 +65,7 @@ from facewire.sender.fit_residual import FitResidual
 from facewire.sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from facewire.sender.lift import MarkerFaceTracker, MarkerFit
 from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
+from facewire.sender.refresh import REFRESH_KBPS, RefreshMeter
 from facewire.sender.rem import RemEncoder
 from facewire.sender.scene_cut import SceneCut, another_face, face_box
 from facewire.sender.synthesis import FaceSynthesis
@@ -146,7 +147,9 @@ class FaceEncoder:
     carries the corrections that put the face's edge and surroundings where the frame shows
     them (:mod:`facewire.sender.edge`); without, they stay zero. With ``body`` (the default)
     the person's body below the head is followed (:mod:`facewire.sender.body_motion`), and
-    the receiver moves it so; without, it moves with the scene.
+    the receiver moves it so; without, it moves with the scene. With ``refresh`` (the default)
+    what the receiver's picture misses for a while around the face (a hand, an object, the
+    scene uncovered) is sent as it is (:mod:`facewire.sender.refresh`).
     """
 
     def __init__(
@@ -168,6 +171,8 @@ class FaceEncoder:
         scenes: bool = True,
         body: bool = True,
         body_kbps: float | None = BODY_KBPS,
+        refresh: bool = True,
+        refresh_kbps: float = REFRESH_KBPS,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -214,7 +219,11 @@ class FaceEncoder:
         self.points: np.ndarray | None = None
         #: Per tracked frame, the wire fit's and the sent face's distance to the tracked face.
         self.residual = FitResidual()
-        self._patches: list[RemPatch] = []
+        self._patches: list[RemPatch | Refresh] = []
+        self.use_refresh, self.refresh_kbps = refresh, refresh_kbps
+        #: What the receiver's picture misses, sent as it is (None: off).
+        self.refresh: RefreshMeter | None = None
+        self._refresh_again = False  # a receiver asked for a keyframe: send them again
         #: The frame packets' rate cap (None: every frame that changed sends).
         self.rate_cap = None if geometry_kbps is None else RateCap(geometry_kbps, fps)
         self.use_synthesis = synthesis
@@ -344,15 +353,20 @@ class FaceEncoder:
         )
         self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
         self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
-        if self.use_edge:
+        self.refresh = None
+        if self.use_edge or self.use_refresh:
             # The receiver's surroundings, rebuilt from what it decodes.
             shown = decode_image(background_webp, "snapshot background")
+            shown_people = person_mask(shown)
             at_snapshot = self.rebuilt_vertices(self._last_values)[self.canonical.outline]
-            self.edge = EdgeMeter(
-                shown, at_snapshot, person_mask(shown), float(np.ptp(points[:, 0]))
-            )
+        if self.use_edge:
+            self.edge = EdgeMeter(shown, at_snapshot, shown_people, float(np.ptp(points[:, 0])))
             if self.smoothing:
                 self._edge_smoother = ChannelSmoother({EDGE: self.steps[EDGE]})
+        if self.use_refresh:
+            self.refresh = RefreshMeter(
+                shown, at_snapshot, shown_people, self.fps, self.refresh_kbps
+            )
         self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None
         self._depth = float(self._last_values[POSE_TRANSLATION][2] * self.steps[POSE_TRANSLATION])
@@ -493,14 +507,16 @@ class FaceEncoder:
 
     def request_keyframe(self) -> None:
         """The next packet is a keyframe (a receiver asked for one), with every REM patch
-        sent so far again."""
+        sent so far and every refresh shown again."""
         if self._channels is not None:
             self._channels.request_keyframe()
         if self.rem is not None:
             self.rem.request_refresh()
+        self._refresh_again = True
 
-    def take_patches(self) -> list[RemPatch]:
-        """The REM patches of the last encoded frame (publish them before its frame packet)."""
+    def take_patches(self) -> list[RemPatch | Refresh]:
+        """The REM patches and refreshes of the last encoded frame (publish them before its
+        frame packet)."""
         patches, self._patches = self._patches, []
         return patches
 
@@ -559,6 +575,17 @@ class FaceEncoder:
         if vertices is not None and self.rem is not None:
             assert self.points is not None
             patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
+        # A refresh gets a frame packet to be drawn with while the geometry's cap allows, and
+        # no more (it would take the geometry past its cap): held, it shows with the next.
+        refreshes: list[Refresh] = []
+        if self.refresh is not None:
+            if self._refresh_again:
+                refreshes += self.refresh.shown()
+                self._refresh_again = False
+            if vertices is not None:
+                camera, body = self._homographies(self._last_values)
+                outline = vertices[self.canonical.outline]
+                refreshes += self.refresh.measure(frame.index, frame.image, outline, camera, body)
         may_send = self.rate_cap is None or self.rate_cap.next_frame()
         if not (may_send or patches or self._channels.keyframe_due(frame.index)):
             # Over the rate cap: the receiver keeps what it has (sender/rate_cap.py).
@@ -570,10 +597,11 @@ class FaceEncoder:
                 vertices = self.rebuilt_vertices(sent)
             packet = None
         else:
-            # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
+            # A patch (or a refresh) is drawn with its frame: that frame needs a packet even if
+            # nothing moved.
             coded = dict(self._channels.coded_bits)
             packet, _ = self._channels.encode(
-                frame.index, frame.capture_us, self._last_values, force=bool(patches)
+                frame.index, frame.capture_us, self._last_values, force=bool(patches or refreshes)
             )
             if packet is not None:
                 self._spend(len(bytes(packet)), coded)
@@ -585,7 +613,7 @@ class FaceEncoder:
             )
         if self.rem is not None and isinstance(packet, KeyFrame):
             patches = self.rem.keyframe(frame.index, patches) + patches
-        self._patches = patches
+        self._patches = [*patches, *refreshes]
         return packet
 
     def _edge(
@@ -596,16 +624,20 @@ class FaceEncoder:
         ``values``; zeros when they are off."""
         if self.edge is None:
             return np.zeros(EDGE_SIZE)
-        shift = dequantise(values[CAMERA], self.steps[CAMERA])
-        camera = homography_from_corners(shift, self.width, self.height)
-        body = camera @ homography_from_corners(
-            dequantise(values[BODY], self.steps[BODY]), self.width, self.height
-        )
+        camera, body = self._homographies(values)
         outline = vertices[self.canonical.outline]
         edge = self.edge.measure(frame.image, outline, camera, body).ravel()
         if self._edge_smoother is None:
             return edge
         return self._edge_smoother({EDGE: edge}, frame.index / self.fps)[EDGE]
+
+    def _homographies(self, values: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's and the person's (3, 3) homographies the receiver makes of quantised
+        channel ``values`` (models/camera.py, models/body.py)."""
+        shift = dequantise(values[CAMERA], self.steps[CAMERA])
+        camera = homography_from_corners(shift, self.width, self.height)
+        body = dequantise(values[BODY], self.steps[BODY])
+        return camera, camera @ homography_from_corners(body, self.width, self.height)
 
     def _quantise_own(
         self, name: str, floats: np.ndarray, sent: np.ndarray, cap: RateCap | None

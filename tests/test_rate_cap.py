@@ -46,7 +46,7 @@ def _call(
     """Both ends over ``frames`` (packets as bytes); after every frame the sender's idea of
     what the receiver holds is what the receiver decoded. Returns the encoder, the frame
     packets' bytes and the keyframes. ``slack_steps``: the cap's, if not its own."""
-    encoder = FaceEncoder(640, 480, FPS, rem=False, geometry_kbps=kbps)
+    encoder = FaceEncoder(640, 480, FPS, rem=False, refresh=False, geometry_kbps=kbps)
     if slack_steps is not None:
         assert encoder.rate_cap is not None
         encoder.rate_cap.slack_steps = slack_steps
