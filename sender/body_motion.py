@@ -21,9 +21,9 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-#: The body is measured on the frame reduced to at most this width, pixels: it is large, and
-#: a pixel of the reduced frame is still a fraction of one of the face's.
-WORK_WIDTH = 320
+#: The body is measured on the frame reduced by a whole factor to about this width, pixels:
+#: it is large, and its step on the wire is a pixel of the frame.
+WORK_WIDTH = 160
 #: Snapshot pixels whose person probability is above this are the person's.
 PERSON_THRESHOLD = 0.5
 #: The body starts this share of the face's height below the chin (the neck's top follows
@@ -53,7 +53,7 @@ class BodyTracker:
 
     def __init__(self, image: np.ndarray, outline: np.ndarray, person: np.ndarray) -> None:
         h, w = image.shape[:2]
-        self.reduce = k = max(1, int(np.ceil(w / WORK_WIDTH)))
+        self.reduce = k = max(1, w // WORK_WIDTH)
         # Frame pixels to work pixels (centres kept), and back.
         shift = 0.5 / k - 0.5
         self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])

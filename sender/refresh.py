@@ -4,8 +4,9 @@ The receiver's picture is the snapshot frame warped (models/surround.py) with th
 over it. What that frame never showed (a hand raised to the chin, an object held up, the
 scene a person uncovers, a light switched on) it cannot show. The sender rebuilds the
 receiver's surroundings as it does for the face's edge (no drawing, on the frame reduced to
-about 176 pixels wide) and compares them with its frame in blocks, leaving out the drawn
-face. Each pixel's difference is the least over shifts of up to :data:`SLACK` pixels, so
+about 120 pixels wide, every third frame: a tenth of a second is soon enough, and the
+sender has 16 ms a frame in all) and compares them with its frame in blocks, leaving out the
+drawn face. Each pixel's difference is the least over shifts of up to :data:`SLACK` pixels, so
 hair or a shoulder a pixel or two off (which the warp leaves, and the edge's corrections
 mend) does not count; a block whose mean difference stays above :data:`DIFF_LEVEL` for
 :data:`PERSIST_S` is the model's failure, not a moment's. The largest group of such blocks,
@@ -38,16 +39,22 @@ logger = logging.getLogger(__name__)
 REFRESH_KBPS = 1.5
 #: Seconds of budget the bucket holds (and starts with).
 BUCKET_S = 2.0
-#: The comparison's frame is reduced to at most this width, pixels.
-WORK_WIDTH = 176
+#: The comparison's frame is reduced by a whole factor to about this width, pixels.
+WORK_WIDTH = 120
+#: The comparison is made every this many frames.
+EVERY = 3
 #: Blocks of the comparison, work pixels on a side.
 BLOCK = 8
 #: Work pixels of misplacement forgiven: the difference is the least over these shifts.
 SLACK = 2
 #: A block is the model's failure where its mean luma difference is above this (0-255) ...
 DIFF_LEVEL = 28.0
-#: ... for this long, seconds.
+#: ... for this long, seconds ...
 PERSIST_S = 0.25
+#: ... in a group of at least this many blocks: a block or two failing is most often hair or
+#: an ear a few pixels off as the head turns, and a refresh of it goes stale as it moves on.
+MIN_BLOCKS = 4
+_CHANNEL_MEAN = np.full((1, 3), 1.0 / 3.0, np.float32)
 #: A refresh's image is at most this many pixels (scaled down if larger) ...
 MAX_PIXELS = 64 * 64
 #: ... at this WebP quality.
@@ -79,7 +86,7 @@ class RefreshMeter:
         kbps: float = REFRESH_KBPS,
     ) -> None:
         self.height, self.width = background.shape[:2]
-        self.reduce = k = max(1, int(np.ceil(self.width / WORK_WIDTH)))
+        self.reduce = k = max(1, self.width // WORK_WIDTH)
         shift = 0.5 / k - 0.5
         self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])
         self._from_work = np.linalg.inv(self._to_work)
@@ -90,7 +97,8 @@ class RefreshMeter:
         )
         self.cols, self.rows = self.size[0] // BLOCK, self.size[1] // BLOCK
         self._failing = np.zeros((self.rows, self.cols), np.int32)
-        self._persist = max(1, round(PERSIST_S * fps))
+        self._persist = max(1, round(PERSIST_S * fps / EVERY))
+        self._frames = 0
         self.bucket = RateCap(kbps, fps, BUCKET_S)
         self.bucket.tokens = self.bucket.capacity
         #: What the receiver shows over its surroundings, as it shows it.
@@ -131,6 +139,9 @@ class RefreshMeter:
         the face's outline at ``outline`` (k, 3) with the camera's and the body's homographies
         (models/surround.py); none while the bucket is in debt or nothing fails."""
         can_send = self.bucket.next_frame()
+        self._frames += 1
+        if (self._frames - 1) % EVERY:
+            return []
         poly = self._work(outline)
         model = self.surround.warp(poly, self._in_work(camera), body=self._in_work(body))
         shown = self.layer.over(model.copy())
@@ -142,14 +153,14 @@ class RefreshMeter:
         due = self._failing >= self._persist
         if not due.any():
             return []
-        c0, r0, c1, r1 = self._largest(due)
+        (c0, r0, c1, r1), size = self._largest(due)
         # Where the model alone matches the frame, a refresh there is only in the way: it
         # goes (a few bytes, whatever the bucket holds).
         model_fails = (self._blocks(seen, model) > DIFF_LEVEL) & ~face
         under = [s for s in self._shown if _overlap(s.blocks, (c0, r0, c1, r1))]
         if under and not model_fails[r0:r1, c0:c1].any():
             packets = [self._clear(seq, s) for s in under]
-        elif can_send:
+        elif can_send and size >= MIN_BLOCKS:
             packets = [self._cut(seq, image, (c0, r0, c1, r1))]
         else:
             return []
@@ -168,11 +179,10 @@ class RefreshMeter:
         mean), per block: at each pixel the larger of the least difference of ``a`` to ``b``
         shifted by up to SLACK pixels and of ``b`` to ``a`` shifted (one way only, a texture
         in the one shifted would find a near match for a flat colour in the other)."""
-        fa = cv2.blur(a, (3, 3)).astype(np.int16)
-        fb = cv2.blur(b, (3, 3)).astype(np.int16)
-        diff = np.maximum(_least(fa, fb), _least(fb, fa))
-        diff = diff[: self.rows * BLOCK, : self.cols * BLOCK].astype(np.float32)
-        return diff.reshape(self.rows, BLOCK, self.cols, BLOCK).mean((1, 3))
+        fa, fb = cv2.blur(a, (3, 3)), cv2.blur(b, (3, 3))
+        diff = cv2.max(_least(fa, fb), _least(fb, fa))
+        diff = diff[: self.rows * BLOCK, : self.cols * BLOCK]
+        return cv2.resize(diff, (self.cols, self.rows), interpolation=cv2.INTER_AREA)
 
     def _face_blocks(self, poly: np.ndarray) -> np.ndarray:
         """(rows, cols) bool: blocks whose centre the drawn face covers."""
@@ -181,18 +191,14 @@ class RefreshMeter:
         cv2.fillPoly(mask, [scaled], 1)
         return mask.astype(bool)
 
-    def _largest(self, due: np.ndarray) -> tuple[int, int, int, int]:
+    def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``
-        blocks, grown by one."""
+        blocks, grown by one, and how many blocks the group has."""
         _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), 8)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        x, y, w, h = stats[best, :4]
-        return (
-            max(0, int(x) - 1),
-            max(0, int(y) - 1),
-            min(self.cols, int(x + w) + 1),
-            min(self.rows, int(y + h) + 1),
-        )
+        x, y, w, h, size = (int(v) for v in stats[best, :5])
+        box = (max(0, x - 1), max(0, y - 1), min(self.cols, x + w + 1), min(self.rows, y + h + 1))
+        return box, size
 
     def _area(self, blocks: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         """Frame pixels (x, y, width, height) of work blocks."""
@@ -239,16 +245,18 @@ class RefreshMeter:
 
 
 def _least(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(h, w) int16: at each pixel of ``a`` (h, w, 3) int16 the least mean absolute difference
-    over its channels to ``b`` shifted by up to SLACK pixels either way."""
+    """(h, w) float32: at each pixel of ``a`` (h, w, 3) uint8 the least mean absolute
+    difference over its channels to ``b`` shifted by up to SLACK pixels either way."""
     s = SLACK
     padded = cv2.copyMakeBorder(b, s, s, s, s, cv2.BORDER_REPLICATE)
     h, w = a.shape[:2]
-    least = np.full((h, w), 255, np.int16)
+    least = None
     for dy in (-s, 0, s):
         for dx in (-s, 0, s):
-            moved = padded[s + dy : s + dy + h, s + dx : s + dx + w]
-            np.minimum(least, np.abs(a - moved).sum(2) // 3, out=least)
+            moved = np.ascontiguousarray(padded[s + dy : s + dy + h, s + dx : s + dx + w])
+            diff = cv2.transform(cv2.absdiff(a, moved), _CHANNEL_MEAN)
+            least = diff if least is None else cv2.min(least, diff)
+    assert least is not None
     return least
 
 

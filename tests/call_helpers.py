@@ -22,7 +22,7 @@ import numpy as np
 
 from facewire.protocol.clock import now_us
 from facewire.protocol.keys import write_keypair
-from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
+from facewire.protocol.packets import DeltaFrame, KeyFrame, Refresh, RemPatch, Snapshot, decode
 from facewire.protocol.transport import SenderEndpoint
 from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
@@ -225,6 +225,9 @@ def reference_frames(snapshot: Snapshot, sent: list[tuple[int, bytes]]) -> dict[
             packet = decode(data)
             if isinstance(packet, RemPatch):
                 assert decoder.add_patch(packet)
+                continue
+            if isinstance(packet, Refresh):
+                assert decoder.add_refresh(packet)
                 continue
             assert isinstance(packet, (KeyFrame, DeltaFrame))
             out[seq] = decoder.reconstruct(decoder.decode(packet))
