@@ -17,6 +17,8 @@ import numpy as np
 
 #: The border fades over this share of the refresh's shorter side.
 FEATHER = 0.2
+#: A refresh does not show on the face's outline grown by this share about its centre.
+FACE_MARGIN = 0.15
 #: Most refreshes shown at once: the oldest goes first.
 MAX_SHOWN = 8
 
@@ -75,12 +77,24 @@ class RefreshLayer:
     def __len__(self) -> int:
         return len(self._shown)
 
-    def over(self, picture: np.ndarray) -> np.ndarray:
-        """``picture`` (height, width, 3) uint8 with the refreshes shown over it (in place)."""
+    def over(self, picture: np.ndarray, face: np.ndarray | None = None) -> np.ndarray:
+        """``picture`` (height, width, 3) uint8 with the refreshes shown over it (in place),
+        except on ``face`` (k, 2), the face's outline in it, grown by FACE_MARGIN about its
+        centre: the face drawn over it fades into the picture at its edge, and a refresh
+        cut a moment ago must not show through there as the face moves on."""
+        grown = None
+        if face is not None and len(self._shown):
+            centre = face.mean(0)
+            grown = centre + (1.0 + FACE_MARGIN) * (face - centre)
         for area in self._shown:
             x0, y0, x1, y1 = area.box
+            weight = area.weight
+            if grown is not None:
+                inside = np.zeros((y1 - y0, x1 - x0), np.uint8)
+                cv2.fillPoly(inside, [np.round(grown - (x0, y0)).astype(np.int32)], 1)
+                weight = weight * (1 - inside)[..., None]
             under = picture[y0:y1, x0:x1].astype(np.float32)
-            mixed = under + area.weight * (area.image.astype(np.float32) - under)
+            mixed = under + weight * (area.image.astype(np.float32) - under)
             picture[y0:y1, x0:x1] = np.clip(mixed + 0.5, 0, 255).astype(np.uint8)
         return picture
 

@@ -365,7 +365,7 @@ class FaceDecoder:
         person = None if body is None else camera @ body
         background = self.surround.warp(vertices[self._outline], camera, body=person)
         # What the model misses, as the camera saw it: over the surroundings, under the face.
-        self.refresh.over(background)
+        self.refresh.over(background, outline)
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))

@@ -144,7 +144,7 @@ class RefreshMeter:
             return []
         poly = self._work(outline)
         model = self.surround.warp(poly, self._in_work(camera), body=self._in_work(body))
-        shown = self.layer.over(model.copy())
+        shown = self.layer.over(model.copy(), poly[:, :2])
         seen = self._reduced(image)
         failing = self._blocks(seen, shown) > DIFF_LEVEL
         face = self._face_blocks(poly)
