@@ -2,10 +2,11 @@
 
 Each refresh is an image of an area of the frame (a hand raised to the chin, an object, the
 scene a person uncovered), shown over the warped surroundings from its frame on and under
-the drawn face, which stays the geometry's. Its border fades over :data:`FEATHER` of its
-shorter side, so the area's edge does not show as a seam. A new refresh takes the place of
-every earlier one it overlaps; an empty one gives its area back to the model. Both ends keep
-one (the sender, to compare its frame with what the receiver shows: sender/refresh.py).
+the drawn face, which stays the geometry's (and not at the face's edge, where the face fades
+into what is under it). Its border fades over :data:`FEATHER` of its shorter side, so the
+area's edge does not show as a seam. A new refresh takes the place of every earlier one it
+overlaps; an empty one gives its area back to the model. Both ends keep one (the sender, to
+compare its frame with what the receiver shows: sender/refresh.py).
 """
 
 from __future__ import annotations
