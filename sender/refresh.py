@@ -14,8 +14,10 @@ grown by a block, is cut from the frame and sent as a WebP image of that area; t
 shows it over its surroundings (under the face) from then on, and the sender compares
 against the picture with it. Where the model matches the frame again under a refresh (the
 hand went down), the area is given back to the model with an empty one, whatever the
-bucket holds. The images are paid from a token bucket of their own (:data:`REFRESH_KBPS`,
-with two seconds of credit: the first one goes at once, the ones after wait for its debt).
+bucket holds; so is a refresh that no longer matches while the bucket cannot pay for a new
+one (the head moved on: frozen, it showed a piece of the head where it was). The images are
+paid from a token bucket of their own (:data:`REFRESH_KBPS`, with two seconds of credit: the
+first one goes at once, the ones after wait for its debt).
 """
 
 from __future__ import annotations
@@ -154,13 +156,15 @@ class RefreshMeter:
         if not due.any():
             return []
         (c0, r0, c1, r1), size = self._largest(due)
-        # Where the model alone matches the frame, a refresh there is only in the way: it
-        # goes (a few bytes, whatever the bucket holds).
+        # Where the model alone matches the frame, a refresh there is only in the way; and one
+        # that no longer matches and cannot be replaced now is older than the model's picture
+        # (a head that moved on): either goes (a few bytes, whatever the bucket holds).
         model_fails = (self._blocks(seen, model) > DIFF_LEVEL) & ~face
         under = [s for s in self._shown if _overlap(s.blocks, (c0, r0, c1, r1))]
-        if under and not model_fails[r0:r1, c0:c1].any():
+        replace = can_send and size >= MIN_BLOCKS
+        if under and not (replace and model_fails[r0:r1, c0:c1].any()):
             packets = [self._clear(seq, s) for s in under]
-        elif can_send and size >= MIN_BLOCKS:
+        elif replace:
             packets = [self._cut(seq, image, (c0, r0, c1, r1))]
         else:
             return []
