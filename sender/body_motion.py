@@ -32,7 +32,7 @@ BELOW_CHIN = 0.15
 #: The person region is grown by this share of the frame's width, so the corners of its
 #: silhouette against the scene are picked too.
 EDGE_REACH = 0.02
-MAX_CORNERS = 120
+MAX_CORNERS = 60
 MIN_INLIERS = 8
 #: Least share of the followed points that must agree on the body's motion.
 MIN_AGREEMENT = 0.5
@@ -40,7 +40,7 @@ MIN_AGREEMENT = 0.5
 RANSAC_PX = 1.5
 #: The body's scale stays within this factor of the snapshot's either way.
 MAX_ZOOM = 2.0
-LK_WINDOW = 15
+LK_WINDOW = 11
 _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.02)
 
 
@@ -111,7 +111,7 @@ class BodyTracker:
             self._points,
             None,
             winSize=(LK_WINDOW, LK_WINDOW),
-            maxLevel=2,
+            maxLevel=1,  # what is left after the warp back is the last frame's small change
             criteria=_LK_CRITERIA,
         )
         good = status.ravel() == 1

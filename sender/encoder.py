@@ -565,10 +565,12 @@ class FaceEncoder:
             floats[POSE_TRANSLATION] = floats[POSE_TRANSLATION].copy()
             floats[POSE_TRANSLATION][2] = self._depth
             values = self._quantise(floats, self._last_values)
-            vertices = self.rebuilt_vertices(values)
-            floats[EDGE] = self._edge(frame, vertices, values)
-            values[EDGE] = self._quantise_own(EDGE, floats[EDGE], sent[EDGE], self.edge_cap)
             values[BODY] = self._quantise_own(BODY, floats[BODY], sent[BODY], self.body_cap)
+            vertices = self.rebuilt_vertices(values)
+            # The surroundings the receiver warps: the camera's and the person's motion.
+            motion = self._homographies(values)
+            floats[EDGE] = self._edge(frame, vertices, motion)
+            values[EDGE] = self._quantise_own(EDGE, floats[EDGE], sent[EDGE], self.edge_cap)
             self.intended = floats
             self._last_values = values
         patches: list[RemPatch] = []
@@ -583,7 +585,7 @@ class FaceEncoder:
                 refreshes += self.refresh.shown()
                 self._refresh_again = False
             if vertices is not None:
-                camera, body = self._homographies(self._last_values)
+                camera, body = motion
                 outline = vertices[self.canonical.outline]
                 refreshes += self.refresh.measure(frame.index, frame.image, outline, camera, body)
         may_send = self.rate_cap is None or self.rate_cap.next_frame()
@@ -617,14 +619,18 @@ class FaceEncoder:
         return packet
 
     def _edge(
-        self, frame: CapturedFrame, vertices: np.ndarray, values: dict[str, np.ndarray]
+        self,
+        frame: CapturedFrame,
+        vertices: np.ndarray,
+        motion: tuple[np.ndarray, np.ndarray],
     ) -> np.ndarray:
         """(EDGE_SIZE,) the face's edge corrections for ``frame`` (smoothed over time), where
-        the receiver draws the face at ``vertices`` (n, 3) with the camera of channel
-        ``values``; zeros when they are off."""
+        the receiver draws the face at ``vertices`` (n, 3) and warps the surroundings with
+        ``motion``, the camera's and the person's homographies (:meth:`_homographies`); zeros
+        when they are off."""
         if self.edge is None:
             return np.zeros(EDGE_SIZE)
-        camera, body = self._homographies(values)
+        camera, body = motion
         outline = vertices[self.canonical.outline]
         edge = self.edge.measure(frame.image, outline, camera, body).ravel()
         if self._edge_smoother is None:

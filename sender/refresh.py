@@ -4,7 +4,7 @@ The receiver's picture is the snapshot frame warped (models/surround.py) with th
 over it. What that frame never showed (a hand raised to the chin, an object held up, the
 scene a person uncovers, a light switched on) it cannot show. The sender rebuilds the
 receiver's surroundings as it does for the face's edge (no drawing, on the frame reduced to
-about 120 pixels wide, every third frame: a tenth of a second is soon enough, and the
+about 120 pixels wide, every fourth frame: 0.13 s is soon enough, and the
 sender has 16 ms a frame in all) and compares them with its frame in blocks, leaving out the
 drawn face. Each pixel's difference is the least over shifts of up to :data:`SLACK` pixels, so
 hair or a shoulder a pixel or two off (which the warp leaves, and the edge's corrections
@@ -44,7 +44,7 @@ BUCKET_S = 2.0
 #: The comparison's frame is reduced by a whole factor to about this width, pixels.
 WORK_WIDTH = 120
 #: The comparison is made every this many frames.
-EVERY = 3
+EVERY = 4
 #: Blocks of the comparison, work pixels on a side.
 BLOCK = 8
 #: Work pixels of misplacement forgiven: the difference is the least over these shifts.
