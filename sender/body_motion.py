@@ -109,10 +109,11 @@ class BodyTracker:
             self._reference,
             back,
             self._points,
-            None,
+            self._points.copy(),  # where the warp back puts them: the start of the search
             winSize=(LK_WINDOW, LK_WINDOW),
             maxLevel=1,  # what is left after the warp back is the last frame's small change
             criteria=_LK_CRITERIA,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         good = status.ravel() == 1
         if good.sum() < MIN_INLIERS:

@@ -198,7 +198,7 @@ class RefreshMeter:
     def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``
         blocks, grown by one, and how many blocks the group has."""
-        _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), 8)
+        _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), connectivity=8)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         x, y, w, h, size = (int(v) for v in stats[best, :5])
         box = (max(0, x - 1), max(0, y - 1), min(self.cols, x + w + 1), min(self.rows, y + h + 1))
