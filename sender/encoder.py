@@ -582,7 +582,7 @@ class FaceEncoder:
         refreshes: list[Refresh] = []
         if self.refresh is not None:
             if self._refresh_again:
-                refreshes += self.refresh.shown()
+                refreshes += self.refresh.again(frame.index)
                 self._refresh_again = False
             if vertices is not None:
                 camera, body = motion

@@ -22,6 +22,7 @@ first one goes at once, the ones after wait for its debt).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -174,9 +175,14 @@ class RefreshMeter:
             self.bytes += len(bytes(packet))
         return packets
 
-    def shown(self) -> list[Refresh]:
-        """The refreshes the receiver shows now (sent again when it asks for a keyframe)."""
-        return [s.packet for s in self._shown]
+    def again(self, seq: int) -> list[Refresh]:
+        """What the receiver should show from frame ``seq`` on, whatever it lost: the whole
+        frame given back to the model, then every refresh shown now (sent when it asks for a
+        keyframe; a lost refresh, or a lost empty one, is put right)."""
+        everything = Refresh(seq, 0, 0, self.width, self.height, "", b"")
+        # All of frame ``seq``: shown in this order whatever frame the receiver draws next.
+        shown = [dataclasses.replace(s.packet, seq=seq) for s in self._shown]
+        return [everything, *shown]
 
     def _blocks(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(rows, cols) mean absolute difference of two work images (BGR, its channels'

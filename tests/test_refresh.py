@@ -113,3 +113,25 @@ def test_an_object_held_beside_the_face_is_shown_within_a_second_and_goes_with_i
     assert gone is not None, np.round(errors)
     assert max(errors[gone:]) < 15
     assert encoder.refresh is not None and encoder.refresh.bytes - sent[39] < 40
+
+
+def test_a_receiver_that_asks_for_a_keyframe_gets_the_refreshes_again(photo: np.ndarray) -> None:
+    """A lost refresh, or a lost empty one, is put right at the next keyframe a receiver asks
+    for: the whole frame given back to the model, then every refresh shown, all of that
+    frame, so the receiver applies them in that order."""
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
+
+    held = photo.copy()
+    held[120:180, 215:255] = cv2.resize(photo[80:200, 0:50], (40, 60))
+    encoder = FaceEncoder(SIDE, SIDE, 30.0)
+    assert encoder.start(CapturedFrame(0, photo, 0), seq=0) is not None
+    for i in range(1, 20):
+        encoder.encode(CapturedFrame(i, held, i * 33_333))
+        encoder.take_patches()
+    assert encoder.refresh is not None and len(encoder.refresh.layer) == 1
+    encoder.request_keyframe()
+    encoder.encode(CapturedFrame(20, held, 20 * 33_333))
+    again = [p for p in encoder.take_patches() if isinstance(p, Refresh)]
+    assert [(p.seq, p.clears) for p in again] == [(20, True), (20, False)]
+    assert (again[0].x, again[0].y, again[0].width, again[0].height) == (0, 0, SIDE, SIDE)
