@@ -137,12 +137,18 @@ def _add_source_arguments(p: argparse.ArgumentParser) -> None:
         "--loop", action="store_true", help="play the file again and again, its sound too"
     )
     p.add_argument("--frames", type=int, metavar="N", help="send at most N frames")
+    add_size_argument(p)
+
+
+def add_size_argument(p: argparse.ArgumentParser) -> None:
+    """--max-size, for `send`, `room` and `demo` alike."""
     p.add_argument(
         "--max-size",
         type=_size,
         default=MAX_SIZE,
         metavar="WxH",
-        help=f"scale larger inputs down to fit (default {MAX_SIZE[0]}x{MAX_SIZE[1]})",
+        help=f"scale larger inputs down to fit, turned the way the input is (default "
+        f"{MAX_SIZE[0]}x{MAX_SIZE[1]}: a 720x1280 phone picture is sent as it is)",
     )
 
 

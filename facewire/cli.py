@@ -44,8 +44,14 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="read the file as fast as possible instead of at its frame rate",
     )
-    from facewire.call import add_budget_argument, add_geometry_arguments, add_sound_arguments
+    from facewire.call import (
+        add_budget_argument,
+        add_geometry_arguments,
+        add_size_argument,
+        add_sound_arguments,
+    )
 
+    add_size_argument(p)
     add_geometry_arguments(p)
     add_budget_argument(p)
     add_sound_arguments(p)

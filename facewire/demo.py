@@ -22,19 +22,19 @@ from typing import Any
 import cv2
 import numpy as np
 
-from facewire.call import sound_as_asked
+from facewire.call import MAX_SIZE, sound_as_asked
 from facewire.protocol.clock import now_us
 from facewire.protocol.constants import CHANNELS
 from facewire.protocol.keys import write_keypair
 from facewire.protocol.transport import SenderEndpoint
-from facewire.receiver.recorder import Mp4Recorder, crop_to
+from facewire.receiver.recorder import Mp4Recorder, at_input_size
 from facewire.sender.audio import with_sound
 from facewire.sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.lift import MarkerFaceTracker
 from facewire.sender.markers import NO_MARKERS
 from facewire.sender.rate_cap import GEOMETRY_KBPS
-from facewire.sender.session import run_sender, wait_until_ready
+from facewire.sender.session import capped_size, run_sender, scaled, wait_until_ready
 from facewire.sender.snapshot_draft import draft
 from facewire.sheet import write_contact_sheet
 
@@ -102,14 +102,15 @@ def _call(
 ) -> dict[str, Any]:
     markers = getattr(args, "tracker", "landmarks") == "markers"
     tracker = MarkerFaceTracker() if markers else None
+    # Scaled as `facewire send` scales it: the call runs at the size a receiver is sent.
+    size = capped_size(video.width, video.height, *getattr(args, "max_size", MAX_SIZE))
     encoder = FaceEncoder(
-        video.width,
-        video.height,
+        *size,
         video.fps,
         tracker=tracker,
         geometry_kbps=getattr(args, "geometry_kbps", GEOMETRY_KBPS) or None,
     )
-    frames = video.frames(limit=args.frames)
+    frames = scaled(video.frames(limit=args.frames), size)
     buffered = []
     snapshot = None
     for frame in itertools.islice(frames, FACE_SEARCH_FRAMES):
@@ -151,7 +152,7 @@ def _call(
             # Frames read before the call began count as captured now; pacing restarts.
             buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
             video.resync(len(buffered))
-            keep = Mp4Recorder(sent, video.width, video.height, video.fps) if sent else None
+            keep = Mp4Recorder(sent, *size, video.fps) if sent else None  # as sent
             sound = sound_as_asked(
                 args,
                 video.name if not video.is_camera else 0,
@@ -202,8 +203,8 @@ def _call(
                 sender.scene_capture_us, report.get("scene_shown_us", []), strict=False
             )
         ],
-        "width": video.width,
-        "height": video.height,
+        "width": size[0],  # the call's, after --max-size
+        "height": size[1],
         "fps": video.fps,
         "duration_s": duration,
         "sender_fps": sender.fps,
@@ -261,7 +262,7 @@ def _write_compare(source: Path, output: Path, compare: Path, count: int) -> Non
             ok_b, b = out.read()
             if not (ok_a and ok_b):
                 break
-            pair = np.hstack([a, crop_to(b, a.shape)])
+            pair = np.hstack([a, at_input_size(b, a.shape)])
             for text, x in (("input", 8), ("facewire", a.shape[1] + 8)):
                 cv2.putText(pair, text, (x, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
             if writer is None:

@@ -6,6 +6,10 @@ keys it is given; a receiver needs the sender's public key.
 
 ``--room NAME`` writes ``NAME.room`` instead (mode 0600): the secret every participant of
 room NAME passes as ``facewire room --key``; it never goes to the relay (protocol/sframe.py).
+
+``--tls-for HOST`` writes ``HOST.crt`` and ``HOST.key`` (mode 0600): a self-signed TLS
+certificate for a relay on HOST (``facewire relay --tls-cert``), which its participants trust
+with ``facewire room --tls-ca HOST.crt`` (facewire/tls.py).
 """
 
 from __future__ import annotations
@@ -29,14 +33,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", metavar="DIR", help="folder to write the files to (--room: default .)")
     p.add_argument("--room", metavar="NAME", help="make room NAME's secret, NAME.room")
+    p.add_argument(
+        "--tls-for", metavar="HOST",
+        help="make a self-signed TLS certificate for a relay on HOST (a name or an IP address): "
+        "HOST.crt, and HOST.key (mode 0600)",
+    )  # fmt: skip
     p.add_argument("--name", default="facewire", help="file name stem (default: facewire)")
     p.add_argument("--force", action="store_true", help="replace existing key files")
 
     def run(args: argparse.Namespace) -> int:
+        if args.room is not None and args.tls_for is not None:
+            raise ValueError("--room and --tls-for make different files: one at a time")
         if args.room is not None:
             return _room_key(args.room, args.out or ".", args.force)
+        if args.tls_for is not None:
+            from facewire.tls import write_self_signed
+
+            cert, key = write_self_signed(args.tls_for, args.out or ".", force=args.force)
+            print(
+                f"wrote {cert} (the relay's certificate: give it to its participants, "
+                f"--tls-ca) and {key} (its key, keep it private)"
+            )
+            return 0
         if args.out is None:
-            raise ValueError("keys needs --out DIR (or --room NAME for a room's secret)")
+            raise ValueError(
+                "keys needs --out DIR (or --room NAME for a room's secret, or --tls-for HOST)"
+            )
         public, secret = write_keypair(args.out, args.name, force=args.force)
         print(f"wrote {public} (public) and {secret} (secret, keep it private)")
         return 0

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from facewire.protocol.keys import PUBLIC_SUFFIX, load_keypair, load_public_key
+from facewire.protocol.keys import load_keypair, load_public_key, public_key_files
 
 logger = logging.getLogger(__name__)
 
@@ -143,16 +143,7 @@ def _check_key_options(args: argparse.Namespace) -> None:
 
 
 def _public_key_files(peers: list[str]) -> list[Path]:
-    files: list[Path] = []
-    for peer in peers:
-        path = Path(peer)
-        if path.is_dir():
-            found = sorted(path.glob(f"*{PUBLIC_SUFFIX}"))
-            if not found:
-                raise ValueError(f"no public key files (*{PUBLIC_SUFFIX}) in {path}")
-            files += found
-        else:
-            files.append(path)
+    files = public_key_files(peers)
     for path in files:
         load_public_key(path)
     return files

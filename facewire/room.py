@@ -3,7 +3,8 @@
 A participant sends its own stream once, as a two-party sender would (the same encoder, the
 same bundles), and receives everyone else's, one decoder per peer. Three threads: the sender's
 loop (capture, track, encode, publish), the NATS link's event loop, and this one, which opens
-and decodes what comes (and records it, one file per peer).
+and decodes what comes (and records it, one file per peer); each peer's sound plays on a
+thread of its own, mixed into the one sound device (facewire/room_sound.py).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 
 from facewire.protocol import subjects
 from facewire.protocol.media_path import DEFAULT_BUDGET_BPS
+from facewire.protocol.sender_keys import SenderKeys, load_peers
 from facewire.protocol.sframe import RoomKey, Sealer, new_kid
 
 logger = logging.getLogger(__name__)
@@ -41,12 +43,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--name", required=True, help="this participant's name in the room")
     p.add_argument(
         "--key", metavar="FILE", required=True,
-        help="the room's secret (facewire keys --room NAME makes it)",
+        help="the room's secret (facewire keys --room NAME makes it), or, with --peer, this "
+        "participant's CURVE secret key (facewire keys: NAME.key_secret)",
+    )  # fmt: skip
+    p.add_argument(
+        "--peer", metavar="FILE", action="append", default=[],
+        help="with a CURVE --key: a peer's public key, NAME.key (NAME is that peer's name in "
+        "the room), or a folder of them; again for each. Only they hear this participant, and "
+        "only they are heard",
     )  # fmt: skip
     p.add_argument(
         "--server", metavar="URL", action="append", default=[],
-        help="a relay, nats://TOKEN@HOST:PORT (again for each node of a cluster); "
-        "none: an embedded relay on loopback",
+        help="a relay, nats://TOKEN@HOST:PORT or tls://TOKEN@HOST:PORT (again for each node "
+        "of a cluster); none: an embedded relay on loopback",
+    )  # fmt: skip
+    p.add_argument(
+        "--tls-ca", metavar="FILE",
+        help="trust relays whose TLS certificate this CA (PEM) signed, e.g. the relay's own "
+        "self-signed HOST.crt; the connection is then TLS",
     )  # fmt: skip
     _add_source_arguments(p)
     add_sound_arguments(p)
@@ -70,8 +84,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 class _SendingSide:
     """The sender's loop in a thread; what ended it is kept for the main thread."""
 
-    def __init__(self, args: argparse.Namespace, link: Any, key: RoomKey, sealer: Sealer,
-                 stop: Any, tell: Any) -> None:  # fmt: skip
+    def __init__(self, args: argparse.Namespace, link: Any, key: RoomKey | SenderKeys,
+                 sealer: Sealer, stop: Any, tell: Any) -> None:  # fmt: skip
         self.args, self.link, self.key, self.sealer = args, link, key, sealer
         self.stop, self.tell = stop, tell
         self.endpoint: Any = None
@@ -131,23 +145,37 @@ def run(args: argparse.Namespace) -> int:
     from facewire.relay import Relay, RelayConfig, free_port
     from facewire.room_link import MAX_RECONNECT_ATTEMPTS, RECONNECT_WAIT_S, RoomLink, _hidden
     from facewire.room_peer import RoomReceiver
+    from facewire.room_sound import RoomSound
 
     subjects.check_name(args.room, "room")
     subjects.check_name(args.name, "participant")
-    key = RoomKey.load(args.key)
-    if key.room != args.room:
-        raise ValueError(f"{args.key} is room {key.room}'s key, not room {args.room}'s")
+    key: RoomKey | SenderKeys
+    if args.peer:
+        key = SenderKeys(args.room, args.name, args.key, load_peers(args.peer))
+        sealer = Sealer(key.own_key, key.kid)
+    else:
+        if "secret-key" in _head(args.key):
+            raise ValueError(f"{args.key} is a CURVE secret key: name the peers with --peer")
+        key = RoomKey.load(args.key)
+        if key.room != args.room:
+            raise ValueError(f"{args.key} is room {key.room}'s key, not room {args.room}'s")
+        sealer = Sealer(key.base_key(args.name), new_kid(args.name))
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
+    tls = None
+    if args.tls_ca:
+        from facewire.tls import client_context
+
+        tls = client_context(args.tls_ca)
     record_dir = Path(args.record_dir) if args.record_dir else None
     if record_dir is not None:
         record_dir.mkdir(parents=True, exist_ok=True)
-    sealer = Sealer(key.base_key(args.name), new_kid(args.name))
     relay: Relay | None = None
     link: RoomLink | None = None
     receiver: RoomReceiver | None = None
     sending: _SendingSide | None = None
     view: Any = None
+    sound: RoomSound | None = None
     tell = say
     with StopSignal() as stop:
         try:
@@ -169,18 +197,23 @@ def run(args: argparse.Namespace) -> int:
                 relay = Relay(RelayConfig(port=free_port())).start()
                 servers = [relay.config.client_url()]
                 tell(f"no --server: a relay on loopback; others join with --server {servers[0]}")
+            sound = RoomSound(tell)
             receiver = RoomReceiver(
                 key, args.name,
                 get_snapshot=lambda name: link.get_snapshot(name) if link else None,
                 publish=lambda subject, data: link.publish(subject, data) if link else None,
-                sealer=sealer, notify=tell, record_dir=record_dir, gallery=gallery,
+                sealer=sealer, notify=tell, record_dir=record_dir, gallery=gallery, sound=sound,
                 on_keyframe_request=lambda request: (
                     sending.endpoint.request_keyframe(request)
                     if sending is not None and sending.endpoint is not None else None
                 ),
             )  # fmt: skip
-            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell)
+            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell, tls)
             link.start()
+            if isinstance(key, SenderKeys):  # the boxes are in the bucket before any media
+                key.fetch = link.get_entry
+                for box, sealed in key.boxes().items():
+                    link.put_entry(box, sealed)
             tell(f"joined room {args.room} as {args.name} through {link.connected_url}")
             if args.receive_only:
                 tell("receiving only; leaving once those who came have all left")
@@ -207,18 +240,32 @@ def run(args: argparse.Namespace) -> int:
                 sending.done.wait(5.0)
             if receiver is not None:
                 receiver.close()
+            if sound is not None:
+                sound.close()
             if link is not None:
                 link.close()
             if relay is not None:
                 relay.close()
             if view is not None:
                 view.close()
+    if receiver is not None and receiver.finish_errors:
+        raise receiver.finish_errors[0]  # a recording that could not be finished
     stats = _stats(args, servers, link, receiver, sending, _hidden)
     seen = ", ".join(f"{n} {p['frames']} frames" for n, p in stats["peers"].items())
     say(f"left room {args.room}: {seen or 'no one came'}")
     if args.stats:
         Path(args.stats).write_text(json.dumps(stats, indent=1))
     return 0
+
+
+def _head(path: str) -> str:
+    """The start of a key file, to tell a CURVE key from a room's secret ("" if unreadable:
+    the room key's own error says why)."""
+    try:
+        with open(path, errors="replace") as f:
+            return f.read(4096)
+    except OSError:
+        return ""
 
 
 def _stats(args: argparse.Namespace, servers: list[str], link: Any, receiver: Any,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -32,6 +33,17 @@ BUCKET_WAIT_S = 10.0
 MAX_RECONNECT_ATTEMPTS = 120  # 30 s of trying, then the call ends
 
 
+class _QuietTLSClose(logging.Filter):
+    """asyncio warns of nats-py's protocol when a TLS connection is refused; the refusal is
+    said in one line of our own."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "eof_received() has no effect when using ssl" not in record.getMessage()
+
+
+logging.getLogger("asyncio").addFilter(_QuietTLSClose())
+
+
 class RelayUnreachable(RuntimeError):
     """No relay answered (the message says which and why, in one line)."""
 
@@ -50,8 +62,10 @@ class RoomLink:
         name: str,
         on_message: Callable[[str, bytes, int], None],
         notify: Callable[[str], None],
+        tls: ssl.SSLContext | None = None,
     ) -> None:
         self.servers = servers
+        self.tls = tls  # None: the system's CAs, when a relay asks for TLS
         self.room = room
         self.name = name
         self.on_message = on_message
@@ -94,15 +108,23 @@ class RoomLink:
         self._loop.call_soon_threadsafe(self._publish, subject, data)
 
     def put_snapshot(self, data: bytes) -> None:
-        self._call(self._kv.put(self.name, data))
+        self.put_entry(self.name, data)
+
+    def put_entry(self, key: str, data: bytes) -> None:
+        """Put ``data`` in the room's bucket under ``key`` (a snapshot, a sealed key box)."""
+        self._call(self._kv.put(key, data))
 
     def get_snapshot(self, name: str) -> bytes | None:
         """``name``'s sealed snapshot; None when the bucket has none, or cannot say now (a
         cluster electing the bucket's leader after a node died, a reconnection)."""
+        return self.get_entry(name)
+
+    def get_entry(self, key: str) -> bytes | None:
+        """The room's bucket's entry ``key``; None as for :meth:`get_snapshot`."""
         try:
-            return self._call(self._get(name), SNAPSHOT_TIMEOUT_S)
+            return self._call(self._get(key), SNAPSHOT_TIMEOUT_S)
         except Exception as exc:
-            logger.info("%s's snapshot: %s", name, str(exc) or type(exc).__name__)
+            logger.info("the bucket's %s: %s", key, str(exc) or type(exc).__name__)
             return None
 
     def delete_snapshot(self) -> None:
@@ -114,7 +136,7 @@ class RoomLink:
         if nc is None or nc.connected_url is None:
             return None
         url = nc.connected_url
-        return f"nats://{url.hostname}:{url.port}"
+        return f"{url.scheme or 'nats'}://{url.hostname}:{url.port}"
 
     def close(self) -> None:
         self._closing = True
@@ -164,6 +186,7 @@ class RoomLink:
                     ping_interval=2,
                     max_outstanding_pings=2,
                     no_echo=True,  # our own bundles do not come back to us
+                    tls=self.tls,
                     error_cb=error,
                     disconnected_cb=disconnected,
                     reconnected_cb=reconnected,
@@ -174,6 +197,8 @@ class RoomLink:
         except Exception as exc:
             where = ", ".join(_hidden(s) for s in self.servers)
             why = failures[-1] if failures else (str(exc) or type(exc).__name__)
+            if "CERTIFICATE_VERIFY_FAILED" in why:
+                why += " (--tls-ca FILE: the relay's certificate, or the CA that signed it)"
             raise RelayUnreachable(f"cannot reach the relay at {where}: {why}") from None
         self._kv = await self._bucket()
         await self._nc.subscribe(subjects.media(self.room), cb=self._deliver)

@@ -3,20 +3,21 @@
 :class:`RoomReceiver` takes every message the link delivers: it opens it (protocol/sframe.py),
 and a media bundle from someone new first fetches that one's snapshot from the room's
 bucket (the Clone pattern: subscribed first, then the state, then the updates), builds a
-:class:`Peer` (the two-party receiver's FaceDecoder) and asks that sender for a keyframe on
-its own control subject. A peer leaves on its Bye, or when nothing of it came for
-PEER_GONE_S.
+:class:`Peer` (the two-party receiver's FaceDecoder, and its CallSound: facewire/room_sound.py)
+and asks that sender for a keyframe on its own control subject. A peer leaves on its Bye, or
+when nothing of it came for PEER_GONE_S; its recording then gets its voice.
 """
 
 from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,7 +39,11 @@ from facewire.protocol.packets import (
     Snapshot,
     decode,
 )
+from facewire.protocol.sender_keys import KeyUnavailable, SenderKeys
 from facewire.protocol.sframe import Header, Opener, RoomKey, Sealer, SFrameError, kid_is_of
+
+if TYPE_CHECKING:
+    from facewire.room_sound import RoomSound
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +58,8 @@ LOCKED_RETRY_S = 5.0
 SNAPSHOT_RETRY_S = 0.5
 #: The longest gap in a recording filled by holding the last picture (frames).
 MAX_HOLD_FRAMES = 60
+#: Pictures kept to tell the sound how long after capture a face is shown (it uses the last 30).
+SHOWN_KEPT = 60
 SNAPSHOT, MEDIA, CONTROL = b"s", b"m", b"c"
 
 
@@ -74,7 +81,7 @@ def _nats_bytes(subject: str, data: bytes) -> int:
 
 
 class Peer:
-    """One other participant: its decoder, its recording, its figures."""
+    """One other participant: its decoder, its sound, its recording."""
 
     def __init__(
         self,
@@ -83,6 +90,7 @@ class Peer:
         snapshot: Snapshot,
         record: Path | None,
         gallery: Any = None,
+        sound: RoomSound | None = None,
     ) -> None:
         from facewire.receiver.decoder import FaceDecoder
         from facewire.receiver.interpolation import Painter
@@ -95,6 +103,7 @@ class Peer:
         # Pictures are drawn only for someone: a recording or the gallery.
         drawn = record is not None or gallery is not None
         self.painter = Painter(self.decoder) if drawn else None
+        self.record = record
         self.recorder: Any = None
         if record is not None:
             from facewire.receiver.recording import BackgroundRecorder
@@ -108,9 +117,15 @@ class Peer:
         self.last_picture: np.ndarray | None = None
         self.last_request = -float("inf")
         self.chain_broken = True  # until the keyframe that starts the chain
+        self.sound = sound
+        # (shown µs, captured µs) of the latest pictures: the voice waits for the face.
+        self.shown: list[tuple[int, int]] = []
+        self.audio = sound.for_peer(name, self.shown, snapshot.fps) if sound is not None else None
+        self.first_seq: int | None = None  # the sender's frame the recording starts with
 
-    def take(self, packet: object, figures: PeerFigures) -> bool:
-        """Decode (and record) one packet; True when a keyframe should be asked for."""
+    def take(self, packet: object, figures: PeerFigures, arrival_us: int) -> bool:
+        """Decode (and record, and play) one packet; True when a keyframe should be asked
+        for. ``arrival_us``: when its message came."""
         if isinstance(packet, (KeyFrame, DeltaFrame)):
             try:
                 values = self.decoder.decode(packet)
@@ -132,34 +147,64 @@ class Peer:
                 gap_ms = (now - figures.last_frame_us) / 1000.0
                 figures.max_gap_ms = max(figures.max_gap_ms, gap_ms)
             figures.last_frame_us = now
+            # The recording's frame this picture becomes places the voice in the recording.
+            index = values.seq if self.recorder is None else self._hold(values.seq)
             if self.painter is not None:
                 picture = self._record(values)
                 if self.gallery is not None:
                     self.gallery.show(self.name, picture, latency_ms, 0)
+            if self.audio is not None:
+                self.shown.append((now_us(), values.capture_us))
+                del self.shown[:-SHOWN_KEPT]
+                self.audio.frame(index, values.capture_us, arrival_us)
         elif isinstance(packet, (RemPatch, Refresh)):
             self.decoder.offer(packet)
         elif isinstance(packet, AudioFrame):
             figures.audio_packets += 1
+            if self.audio is not None and self.sound is not None:
+                self.sound.heard()
+                self.audio.push(packet, arrival_us)
         return False
+
+    def _hold(self, seq: int) -> int:
+        """Hold the last picture over the frames that did not come before ``seq`` (up to
+        MAX_HOLD_FRAMES); the recording's index ``seq``'s picture gets."""
+        assert self.recorder is not None
+        if self.first_seq is None:
+            self.first_seq = seq
+        if self.next_seq is not None and self.last_picture is not None:
+            gap = min(seq - self.next_seq, MAX_HOLD_FRAMES)
+            for _ in range(max(0, gap)):  # frames with no packet hold the last picture
+                self.recorder.write(self.last_picture)
+        return int(self.recorder.frames)
 
     def _record(self, values: Any) -> np.ndarray:
         assert self.painter is not None
         picture = self.painter.exact(values)
         if self.recorder is None:
             return picture
-        if self.next_seq is not None and self.last_picture is not None:
-            gap = min(values.seq - self.next_seq, MAX_HOLD_FRAMES)
-            for _ in range(max(0, gap)):  # frames with no packet hold the last picture
-                self.recorder.write(self.last_picture)
         self.recorder.write(picture)
         self.last_picture = picture
         self.next_seq = values.seq + 1
         return picture
 
     def close(self) -> None:
-        if self.recorder is not None:
-            self.recorder.close()
+        """Stop decoding (on the receiving thread: the renderer's GL context is its own)."""
         self.decoder.close()
+
+    def finish(self, play_out: bool) -> dict[str, Any]:
+        """Play out what sound is buffered (when the peer said bye), stop it, finish the
+        recording with its voice muxed in; the sound's figures. Any thread."""
+        sound: dict[str, Any] = {}
+        try:
+            if self.audio is not None and play_out:
+                self.audio.play_out()
+            if self.recorder is not None:
+                self.recorder.close()
+        finally:
+            if self.audio is not None:
+                sound = self.audio.finish(self.record)
+        return sound
 
 
 class PeerFigures:
@@ -181,6 +226,17 @@ class PeerFigures:
         self.left: str | None = None
         self.last_frame_us: int | None = None
         self.max_gap_ms = 0.0  # the longest wait between two decoded frames (a freeze)
+        self.sound: dict[str, Any] = {}  # receiver/audio.py's AudioReport, sessions added
+        self.recorded_from: int | None = None  # the sender's frame its recording starts with
+
+    def add_sound(self, session: dict[str, Any]) -> None:
+        """A session's sound figures: counts are added; the latency, the offset to the face
+        and the sink are the latest session's."""
+        for key, value in session.items():
+            if isinstance(value, int) and key in self.sound:
+                self.sound[key] += value
+            else:
+                self.sound[key] = value
 
     def as_dict(self) -> dict[str, Any]:
         span_s = (self.last_us - (self.first_us or self.last_us)) / 1e6
@@ -200,6 +256,8 @@ class PeerFigures:
             "chain_breaks": self.chain_breaks,
             "malformed": self.malformed,
             "audio_packets": self.audio_packets,
+            "sound": self.sound,
+            "recorded_from": self.recorded_from,
             "left": self.left,
         }
 
@@ -209,7 +267,7 @@ class RoomReceiver:
 
     def __init__(
         self,
-        key: RoomKey,
+        key: RoomKey | SenderKeys,
         name: str,
         get_snapshot: Callable[[str], bytes | None],
         publish: Callable[[str, bytes], None],
@@ -218,6 +276,7 @@ class RoomReceiver:
         record_dir: Path | None = None,
         on_keyframe_request: Callable[[KeyframeRequest], None] | None = None,
         gallery: Any = None,
+        sound: RoomSound | None = None,
     ) -> None:
         self.key = key
         self.name = name
@@ -228,6 +287,7 @@ class RoomReceiver:
         self.record_dir = record_dir
         self.on_keyframe_request = on_keyframe_request
         self.gallery = gallery
+        self.sound = sound  # None: the peers' sound is neither played nor recorded
         self.inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue()
         self.opener = Opener()
         self.peers: dict[str, Peer] = {}
@@ -236,6 +296,8 @@ class RoomReceiver:
         self.asked: dict[str, float] = {}  # name -> when its snapshot was last read
         self.rejected: Counter[str] = Counter()  # messages that did not open, per sender
         self.told: set[str] = set()
+        self.finishing: list[threading.Thread] = []  # peers' sound and recordings
+        self.finish_errors: list[Exception] = []
 
     def deliver(self, subject: str, data: bytes, arrival_us: int) -> None:
         """The link's callback (its thread): queue only."""
@@ -290,10 +352,10 @@ class RoomReceiver:
         want_keyframe = False
         for packet in self._packets(peer, bundle, figures):
             if isinstance(packet, Bye):
-                self._drop(peer, "said bye")
+                self._drop(peer, "said bye", play_out=True)
                 return
             if not isinstance(packet, Heartbeat):
-                want_keyframe |= peer.take(packet, figures)
+                want_keyframe |= peer.take(packet, figures, arrival_us)
         if want_keyframe or peer.chain_broken:
             self._ask_keyframe(peer, figures)
 
@@ -317,9 +379,15 @@ class RoomReceiver:
         if now - self.asked.get(sender, -SNAPSHOT_RETRY_S) < SNAPSHOT_RETRY_S:
             return None
         self.asked[sender] = now
+        try:
+            base_key = self.key.base_key(sender, kid)
+        except SFrameError as exc:  # a peer's key this one has no box for (sender_keys.py)
+            self.locked[sender] = now
+            self._rejected(sender, exc)
+            return None
         if peer is not None:
             self._drop(peer, "restarted")
-        self.opener.add_key(kid, self.key.base_key(sender))
+        self.opener.add_key(kid, base_key)
         sealed = self.get_snapshot(sender)
         if sealed is None:
             logger.info("%s sends but has no snapshot in the room's bucket yet", sender)
@@ -338,9 +406,12 @@ class RoomReceiver:
             return None
         record = None
         if self.record_dir is not None:
-            record = self.record_dir / f"{sender}.mp4"
+            # A later session (the sender restarted) gets a file of its own, NAME.2.mp4 and
+            # on: the one before may still be getting its sound. Names have no dots.
+            again = self.figures[sender].sessions
+            record = self.record_dir / (f"{sender}.{again + 1}.mp4" if again else f"{sender}.mp4")
         try:
-            peer = Peer(sender, kid, snapshot, record, self.gallery)
+            peer = Peer(sender, kid, snapshot, record, self.gallery, self.sound)
         except ValueError as exc:  # a snapshot this decoder cannot take (another rig)
             self.locked[sender] = time.monotonic()
             self.notify(f"{sender} cannot be shown: {exc}")
@@ -401,7 +472,7 @@ class RoomReceiver:
             if not self.opener.knows(kid):
                 if not kid_is_of(kid, sender):
                     raise SFrameError(f"KID {kid:#x} is not {sender}'s")
-                self.opener.add_key(kid, self.key.base_key(sender))
+                self.opener.add_key(kid, self.key.base_key(sender, kid))
             metadata = self.key.metadata(sender, CONTROL + self.name.encode())
             packet = decode(self.opener.open(data, metadata))
         except (SFrameError, PacketError) as exc:
@@ -414,24 +485,48 @@ class RoomReceiver:
     def _rejected(self, sender: str, exc: Exception) -> None:
         self.rejected[sender] += 1
         logger.debug("from %s: %s", sender, exc)
-        if sender not in self.told and "authenticate" in str(exc):
+        if sender in self.told:
+            return
+        if isinstance(exc, KeyUnavailable):
+            self.told.add(sender)
+            self.notify(str(exc))
+        elif "authenticate" in str(exc):
             self.told.add(sender)
             self.notify(
                 f"{sender}'s messages do not open with this room key: is --key the key of "
                 f"room {self.key.room}? ({sender} stays hidden)"
             )
 
-    def _drop(self, peer: Peer, why: str) -> None:
+    def _drop(self, peer: Peer, why: str, play_out: bool = False) -> None:
+        """``peer`` has left: its sound (played out first when ``play_out``) and recording
+        are finished on a thread of their own, so the other peers' pictures do not wait."""
         self.peers.pop(peer.name, None)
-        self.figures[peer.name].left = why
+        figures = self.figures[peer.name]
+        figures.left = why
+        figures.recorded_from = peer.first_seq
         peer.close()
+
+        def finish() -> None:
+            try:
+                figures.add_sound(peer.finish(play_out))
+            except Exception as exc:  # said by facewire room once all is closed
+                logger.debug("finishing %s", peer.name, exc_info=True)
+                self.finish_errors.append(exc)
+
+        finishing = threading.Thread(target=finish, name=f"finish-{peer.name}", daemon=True)
+        finishing.start()
+        self.finishing.append(finishing)
         if self.gallery is not None:
             self.gallery.left(peer.name)
         self.notify(f"{peer.name} left ({why})")
 
     def close(self) -> None:
+        """Drop who is left and wait until every recording is finished (what went wrong
+        finishing one is in :attr:`finish_errors`)."""
         for peer in list(self.peers.values()):
             self._drop(peer, "this participant left")
+        for finishing in self.finishing:
+            finishing.join()
 
     def stats(self) -> dict[str, Any]:
         return {name: f.as_dict() for name, f in self.figures.items()}

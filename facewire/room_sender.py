@@ -32,6 +32,7 @@ from facewire.protocol.packets import (
     RemPatch,
     Snapshot,
 )
+from facewire.protocol.sender_keys import SenderKeys
 from facewire.protocol.sframe import RoomKey, Sealer
 from facewire.room_link import RoomLink
 
@@ -49,7 +50,7 @@ class RoomSender:
     def __init__(
         self,
         link: RoomLink,
-        key: RoomKey,
+        key: RoomKey | SenderKeys,
         name: str,
         sealer: Sealer,
         fps: float,

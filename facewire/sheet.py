@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facewire.receiver.recorder import crop_to
+from facewire.receiver.recorder import at_input_size
 
 logger = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def write_contact_sheet(source: Path, rebuilt: Path, sheet: Path, count: int) ->
     for i in indices:
         if i not in inputs or i not in outputs:
             continue
-        a, b = inputs[i], crop_to(outputs[i], inputs[i].shape)
+        a, b = inputs[i], at_input_size(outputs[i], inputs[i].shape)
         row = np.hstack([a, b, heat_map(a, b)])
         scale = min(1.0, MAX_ROW_HEIGHT / row.shape[0])
         if scale < 1.0:

@@ -19,8 +19,6 @@ geometry placed stays.
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import cv2
 import numpy as np
 
@@ -116,29 +114,27 @@ def edge_field(
     return full[:rows, :cols]
 
 
-@lru_cache(maxsize=4)
-def _pixels(rows: int, cols: int) -> np.ndarray:
-    """(rows, cols, 2) float32 x, y of each pixel (one per picture size, kept)."""
-    xs, ys = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
-    return np.dstack([xs, ys])
-
-
 def move(image: np.ndarray, field: np.ndarray) -> np.ndarray:
     """``image`` (rows, cols, ...) moved by ``field`` (rows, cols, 2) of :func:`edge_field`."""
-    where = field + _pixels(*field.shape[:2])
-    # One two-channel map (x, y), no second: the stubs do not know that form.
+    # One two-channel map (x, y), no second, relative to each pixel: no grid of pixel
+    # positions to add (the stubs know neither).
     return cv2.remap(  # type: ignore[call-overload]
-        image, where, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        image,
+        field,
+        None,
+        cv2.INTER_LINEAR | cv2.WARP_RELATIVE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
     )
 
 
 def correct(
     image: np.ndarray, face: np.ndarray, outline: np.ndarray, vectors: np.ndarray, band: float
 ) -> np.ndarray:
-    """(h, w, 3) ``image`` (the receiver's finished picture) with its face's edge and
+    """``image`` (h, w, 3), the receiver's finished picture, with its face's edge and
     surroundings moved by the corrections ``vectors`` (EDGE_POINTS, 2) at ``outline``'s
-    :func:`edge_points`. The face's inside, where the drawn face (``face``, (h, w) bool)
-    lies deeper than ``band`` pixels from its edge, keeps its place."""
+    :func:`edge_points`, in place (a copy of a large frame cost more than the move around a
+    small face). The face's inside, where the drawn face (``face``, (h, w) bool) lies deeper
+    than ``band`` pixels from its edge, keeps its place."""
     if not np.any(vectors):
         return image
     h, w = image.shape[:2]
@@ -153,15 +149,15 @@ def correct(
     if x1 <= x0 or y1 <= y0:
         return image
     field = edge_field(poly, vectors, (int(x0), int(y0), int(x1), int(y1)))
-    moved = move(image[y0:y1, x0:x1], field)
-    # The face's inside keeps its place: where the drawn face lies deeper than the band.
-    drawn = face.view(np.uint8)
+    region = image[y0:y1, x0:x1]
+    moved = move(region, field)
+    # The face's inside keeps its place: where the drawn face lies deeper than the band. The
+    # face lies within the outline, well inside the box (all of it that is in the frame).
+    drawn = face[y0:y1, x0:x1].view(np.uint8)
     fx, fy, fw, fh = cv2.boundingRect(drawn)
     if fw and fh:
         depth = cv2.distanceTransform(drawn[fy : fy + fh, fx : fx + fw], cv2.DIST_L2, 3)
-        inside = np.zeros(face.shape, np.uint8)
-        inside[fy : fy + fh, fx : fx + fw] = depth > band
-        cv2.copyTo(image[y0:y1, x0:x1], inside[y0:y1, x0:x1], moved)
-    out = image.copy()
-    out[y0:y1, x0:x1] = moved
-    return out
+        keep = np.s_[fy : fy + fh, fx : fx + fw]
+        cv2.copyTo(region[keep], (depth > band).view(np.uint8), moved[keep])
+    region[...] = moved
+    return image

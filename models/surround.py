@@ -168,7 +168,6 @@ class SurroundWarp:
         ys = (np.arange(ny) + 0.5) * GRID_STEP - 0.5
         gx, gy = np.meshgrid(xs, ys)
         self._grid = np.c_[gx.ravel(), gy.ravel()]
-        self._grid_sq = (self._grid**2).sum(1)[:, None]
         self._grid_shape = gy.shape
         self._reach = reach_weight(self._grid, centre, STILL_REACH * (outline - centre))
         # Output pixels the head's warp can touch: grid cells next to a node it reaches.
@@ -181,14 +180,14 @@ class SurroundWarp:
         )
         # The source is padded (below): the warp's maps count from its corner.
         self._pad = GRID_STEP * -(-max(self.width, self.height) // (SOURCE_PAD * GRID_STEP))
-        grid = np.meshgrid(
-            np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32)
-        )
-        self._pixels = {0: grid, self._pad: [g + self._pad for g in grid]}
         # The person layer's weight rides in the fourth channel, so one remap moves both
         # (and OpenCV remaps four channels faster than three).
         self._layered = person is not None
         self._scene = background
+        # Pictures moved by the camera (and the body) alone, kept while they stay where they
+        # are (their channels are quantised, so they hold for many frames):
+        # (camera and body, which, box) -> picture.
+        self._by_camera: dict[tuple[bytes, str, tuple[int, int, int, int]], np.ndarray] = {}
         alpha = np.full((self.height, self.width), 255, np.uint8)
         if person is not None:
             if person.shape != (self.height, self.width):
@@ -252,29 +251,51 @@ class SurroundWarp:
         (0, or the warp's padding).
         """
         camera = None if _is_still(camera) else camera
+        x0, y0, x1, y1 = box = box or (0, 0, self.width, self.height)
+        both = self._map(outline, camera, box, origin)
+        xs, ys = np.meshgrid(
+            np.arange(x1 - x0, dtype=np.float32), np.arange(y1 - y0, dtype=np.float32)
+        )
+        return both[..., 0] + xs, both[..., 1] + ys
+
+    def _map(
+        self,
+        outline: np.ndarray,
+        camera: np.ndarray | None,
+        box: tuple[int, int, int, int],
+        origin: int,
+    ) -> np.ndarray:
+        """(y1 - y0, x1 - x0, 2) float32: :meth:`source_map` of ``box`` as one two-channel map
+        relative to each pixel of the box (``cv2.WARP_RELATIVE_MAP``: no grid of pixel
+        positions to add); a moving ``camera``, or None."""
         now, then = self.controls(outline, camera)
         back = np.linalg.inv(camera) if camera is not None else None
-        scene = self._grid if back is None else _apply(back, self._grid)
-        # What the head adds to the camera's motion, at each control point.
-        residual = then - (now if back is None else _apply(back, now))
-        head = ThinPlate(now, residual, SMOOTHING)(self._grid, self._grid_sq)
-        # Upsample the displacement, not the position: beyond the outermost nodes resize
-        # holds the value, which is right for a displacement that is smooth there.
-        shift = scene - self._grid + self._reach[:, None] * head
-        coarse = shift.reshape(*self._grid_shape, 2).astype(np.float32)
-        x0, y0, x1, y1 = (0, 0, self.width, self.height) if box is None else box
-        # Only the nodes around the box, one more on each side: what lies between them is
-        # the same as in the whole frame's resize.
+        # Only the nodes around the box, one more on each side: what lies between them is the
+        # same as in the whole frame's resize.
+        x0, y0, x1, y1 = box
         rows, cols = self._grid_shape
         c0, c1 = max(x0 // GRID_STEP - 1, 0), min(-(-x1 // GRID_STEP) + 1, cols)
         r0, r1 = max(y0 // GRID_STEP - 1, 0), min(-(-y1 // GRID_STEP) + 1, rows)
-        part = coarse[r0:r1, c0:c1]
-        size = (part.shape[1] * GRID_STEP, part.shape[0] * GRID_STEP)
-        full = cv2.resize(part, size, interpolation=cv2.INTER_LINEAR)
+        nodes = np.s_[r0:r1, c0:c1]
+        grid = self._grid.reshape(rows, cols, 2)[nodes].reshape(-1, 2)
+        reach = self._reach.reshape(rows, cols)[nodes].ravel()
+        shift = np.zeros_like(grid) if back is None else _apply(back, grid) - grid
+        # What the head adds to the camera's motion, where its warp reaches.
+        reached = reach > 0
+        if reached.any():
+            residual = then - (now if back is None else _apply(back, now))
+            spline = ThinPlate(now, residual, SMOOTHING)
+            shift[reached] += reach[reached, None] * spline(grid[reached])
+        # The box's corner in the image remapped rides on the displacement: interpolation
+        # keeps a constant as it is.
+        shift += (x0 + origin, y0 + origin)
+        # Upsample the displacement, not the position: beyond the outermost nodes resize
+        # holds the value, which is right for a displacement that is smooth there.
+        coarse = shift.reshape(r1 - r0, c1 - c0, 2).astype(np.float32)
+        size = ((c1 - c0) * GRID_STEP, (r1 - r0) * GRID_STEP)
+        full = cv2.resize(coarse, size, interpolation=cv2.INTER_LINEAR)
         ox, oy = c0 * GRID_STEP, r0 * GRID_STEP
-        full = full[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
-        pixels_x, pixels_y = (p[y0:y1, x0:x1] for p in self._pixels[origin])
-        return full[..., 0] + pixels_x, full[..., 1] + pixels_y
+        return full[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
 
     def warp(
         self,
@@ -287,45 +308,97 @@ class SurroundWarp:
         ``box`` (x0, y0, x1, y1) only that part of it (the sender measures around the face).
         ``body``: an optional (3, 3) homography taking the snapshot frame's person pixels to
         this frame's (the camera's motion included): the person beyond the head's reach
-        moves by it, the scene by ``camera`` (without a person layer, all by ``camera``)."""
+        moves by it, the scene by ``camera`` (without a person layer, all by ``camera``).
+
+        Only the head's reach is warped pixel by pixel; beyond it the snapshot frame is moved
+        by the camera alone (copied, when the camera is still), or with a body moving on its
+        own, the person by the body over the scene by the camera (kept while both hold), so
+        the work grows with the face, not the frame.
+        """
+        camera = None if _is_still(camera) else camera
         own = (
             self._layered
             and body is not None
             and not np.allclose(body, np.eye(3) if camera is None else camera, rtol=0.0, atol=1e-9)
         )
-        map_x, map_y = self.source_map(outline, body if own else camera, box, self._pad)
-        bx0, by0, bx1, by1 = (0, 0, self.width, self.height) if box is None else box
-        # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
-        # shows as a black band.
-        moved4 = cv2.remap(
-            self._source, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101
-        )
-        moved = cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR)
-        if not self._layered:
-            return moved
-        # Out of the head's reach the person and the scene move alike (with the camera), and
-        # there they make up the snapshot frame itself: ``moved`` is already right. A body
-        # moving on its own takes the person apart from the scene everywhere.
-        (x0, x1), (y0, y1) = ((0, self.width), (0, self.height)) if own else self._box
+        person = body if own else None
+        bx0, by0, bx1, by1 = box = box or (0, 0, self.width, self.height)
+        out = self._moved("frame", camera, box, person).copy()
+        (x0, x1), (y0, y1) = self._box
         x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
         if x1 <= x0 or y1 <= y0:
-            return moved
-        box_in = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
-        alpha = moved4[box_in][:, :, 3].astype(np.float32) * (1.0 / 255.0)
-        if camera is None or _is_still(camera):
-            scene = self._scene[y0:y1, x0:x1]
+            return out
+        reach = (x0, y0, x1, y1)
+        # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
+        # shows as a black band. One two-channel map, no second (the stubs do not know it).
+        moved4 = cv2.remap(  # type: ignore[call-overload]
+            self._source,
+            self._map(outline, camera if person is None else person, reach, self._pad),
+            None,
+            cv2.INTER_LINEAR | cv2.WARP_RELATIVE_MAP,
+            borderMode=cv2.BORDER_REFLECT_101,
+        )
+        inside = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
+        if self._layered:
+            out[inside] = _over(moved4, self._moved("scene", camera, reach, person))
         else:
-            to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera
-            size, border = (x1 - x0, y1 - y0), cv2.BORDER_REFLECT_101
-            # Nearly affine (the sender measures a similarity; its quantised corners add a
-            # trace of perspective, under 0.1 px here): the cheaper warp.
-            tilt = abs(camera[2, 0]) * self.width + abs(camera[2, 1]) * self.height
-            if tilt < 1e-4 and abs(camera[2, 2] - 1.0) < 1e-9:
-                scene = cv2.warpAffine(self._scene, to_box[:2], size, borderMode=border)
-            else:
-                scene = cv2.warpPerspective(self._scene, to_box, size, borderMode=border)
-        moved[box_in] = cv2.blendLinear(moved[box_in], scene, alpha, 1.0 - alpha)
-        return moved
+            out[inside] = cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR)
+        return out
+
+    def _moved(
+        self,
+        which: str,
+        camera: np.ndarray | None,
+        box: tuple[int, int, int, int],
+        body: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The part ``box`` of the snapshot frame (``which`` "frame") or of the scene behind
+        the person ("scene") moved by ``camera``; with ``body``, the frame is the person
+        layer moved by it over the scene moved by ``camera``: not to be written into."""
+        image = self.background if which == "frame" else self._scene
+        if camera is None and body is None:
+            return image[box[1] : box[3], box[0] : box[2]]
+        motion = b"" if camera is None else camera.tobytes()
+        key = (motion + (b"" if body is None else body.tobytes()), which, box)
+        if key not in self._by_camera:
+            if len(self._by_camera) >= 4 or any(k[0] != key[0] for k in self._by_camera):
+                self._by_camera.clear()  # the camera or body moved (or the sender's box did)
+            if which == "frame" and body is not None:
+                image = self._scene
+            x0, y0, x1, y1 = box
+            picture = image[y0:y1, x0:x1] if camera is None else _moved(image, camera, box)
+            if which == "frame" and body is not None:
+                # The padded source (its layer empty above and beside the frame, carried on
+                # below it) moved by the body, over the scene moved by the camera.
+                pad = self._pad
+                unpad = np.array([[1.0, 0.0, -pad], [0.0, 1.0, -pad], [0.0, 0.0, 1.0]])
+                picture = _over(_moved(self._source, body @ unpad, box), picture)
+            self._by_camera[key] = picture
+        return self._by_camera[key]
+
+
+def _moved(image: np.ndarray, camera: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """The part ``box`` (x0, y0, x1, y1) of ``image`` moved by ``camera`` (a (3, 3)
+    homography), its border reflected."""
+    x0, y0, x1, y1 = box
+    to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ camera
+    size, border = (x1 - x0, y1 - y0), cv2.BORDER_REFLECT_101
+    # Nearly affine (the sender measures a similarity; its quantised corners add a trace of
+    # perspective, under 0.1 px here): the cheaper warp.
+    h, w = image.shape[:2]
+    tilt = abs(camera[2, 0]) * w + abs(camera[2, 1]) * h
+    if tilt < 1e-4 and abs(camera[2, 2] - 1.0) < 1e-9:
+        return cv2.warpAffine(image, to_box[:2], size, borderMode=border)
+    return cv2.warpPerspective(image, to_box, size, borderMode=border)
+
+
+def _over(person: np.ndarray, scene: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8: the person layer ``person`` (h, w, 4), its weight in the fourth
+    channel, over ``scene`` (h, w, 3)."""
+    # Blending only the pixels of partial weight (indexed) cost as much at 1280x720: a large
+    # face's layer has a long faded edge.
+    alpha = person[:, :, 3].astype(np.float32) * np.float32(1.0 / 255.0)
+    return cv2.blendLinear(cv2.cvtColor(person, cv2.COLOR_BGRA2BGR), scene, alpha, 1.0 - alpha)
 
 
 def _person_layer(person: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

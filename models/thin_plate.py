@@ -19,10 +19,16 @@ def _kernel(r2: np.ndarray) -> np.ndarray:
     return out
 
 
-def _squared_distances(a: np.ndarray, b: np.ndarray, a_sq: np.ndarray | None = None) -> np.ndarray:
+#: Points evaluated at once: (block, n) arrays stay in the cache. The whole (m, n) at once,
+#: a 1280x720 frame's 3,600 grid nodes by 90 controls, took three times as long.
+_BLOCK = 256
+
+
+def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(m, n) squared distances between the rows of ``a`` (m, 2) and ``b`` (n, 2)."""
-    a_sq = (a**2).sum(1)[:, None] if a_sq is None else a_sq
-    return np.maximum(a_sq + (b**2).sum(1) - 2.0 * a @ b.T, 0.0)
+    dx = a[:, 0, None] - b[:, 0]
+    dy = a[:, 1, None] - b[:, 1]
+    return dx * dx + dy * dy
 
 
 class ThinPlate:
@@ -43,9 +49,12 @@ class ThinPlate:
         rhs[:n] = values
         self._coef = np.linalg.solve(system, rhs)
 
-    def __call__(self, points: np.ndarray, points_sq: np.ndarray | None = None) -> np.ndarray:
-        """(m, d) the spline at ``points`` (m, 2); ``points_sq`` (m, 1), their squared norms,
-        when the caller keeps them."""
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(m, d) the spline at ``points`` (m, 2)."""
         n, coef = len(self.controls), self._coef
-        k = _kernel(_squared_distances(points, self.controls, points_sq))
-        return np.asarray(k @ coef[:n] + coef[n] + points @ coef[n + 1 :])
+        points = np.asarray(points, dtype=np.float64)
+        out = points @ coef[n + 1 :] + coef[n]
+        for i in range(0, len(points), _BLOCK):
+            block = points[i : i + _BLOCK]
+            out[i : i + _BLOCK] += _kernel(_squared_distances(block, self.controls)) @ coef[:n]
+        return out

@@ -97,6 +97,22 @@ def load_public_key(path: str | os.PathLike[str]) -> bytes:
     return keys["public-key"]
 
 
+def public_key_files(sources: Iterable[str | os.PathLike[str]]) -> list[Path]:
+    """The ``*.key`` files named by ``sources``: files as given, folders by what they hold
+    (ValueError for a folder with none)."""
+    files: list[Path] = []
+    for source in sources:
+        path = Path(source)
+        if path.is_dir():
+            found = sorted(path.glob(f"*{PUBLIC_SUFFIX}"))
+            if not found:
+                raise ValueError(f"no public key files (*{PUBLIC_SUFFIX}) in {path}")
+            files += found
+        else:
+            files.append(path)
+    return files
+
+
 def load_keypair(path: str | os.PathLike[str]) -> KeyPair:
     """Both keys from a ``.key_secret`` file."""
     keys = _read_keys(path)

@@ -233,6 +233,12 @@ def kid_is_of(kid: int, name: str) -> bool:
     return kid >> 32 == _name_tag(name)
 
 
+def metadata(room: str, name: str, kind: bytes) -> bytes:
+    """The associated data of ``name``'s messages of ``kind``: a message cannot be moved to
+    another room, sender or purpose by whoever routes it."""
+    return b"facewire/" + room.encode() + b"/" + name.encode() + b"/" + kind
+
+
 @dataclass(frozen=True)
 class RoomKey:
     """A room's secret; every participant holds the same one."""
@@ -240,15 +246,13 @@ class RoomKey:
     room: str
     secret: bytes
 
-    def base_key(self, name: str) -> bytes:
-        """Participant ``name``'s SFrame base key."""
+    def base_key(self, name: str, kid: int | None = None) -> bytes:
+        """Participant ``name``'s SFrame base key (the same for each of its runs, ``kid``)."""
         info = b"facewire room sender " + self.room.encode() + b"\0" + name.encode()
         return _hkdf_expand(_hkdf_extract(b"", self.secret), info, NK)
 
     def metadata(self, name: str, kind: bytes) -> bytes:
-        """The associated data of ``name``'s messages of ``kind``: a message cannot be moved
-        to another room, sender or purpose by whoever routes it."""
-        return b"facewire/" + self.room.encode() + b"/" + name.encode() + b"/" + kind
+        return metadata(self.room, name, kind)
 
     @classmethod
     def generate(cls, room: str) -> RoomKey:

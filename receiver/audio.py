@@ -22,11 +22,12 @@ import logging
 import os
 import tempfile
 import threading
+import time
 import wave
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -35,6 +36,8 @@ from facewire.protocol.constants import AUDIO_FRAME_MS, AUDIO_FRAME_SAMPLES, AUD
 from facewire.protocol.packets import AudioFrame, KeyFrame
 
 logger = logging.getLogger(__name__)
+
+_Device = TypeVar("_Device")
 
 FRAME_US = AUDIO_FRAME_MS * 1000
 #: Missing steps concealed by the codec in a row; beyond them the gap is silence.
@@ -85,6 +88,9 @@ TRUSTED_AFTER = 3
 MAX_WAIT_US = 5_000_000
 #: A stopping receiver waits this long for the sound's thread, s.
 CLOSE_WAIT_S = 1.0
+#: A sender that said bye has its buffered sound played out for at most this long, s (no
+#: step is due further ahead than MAX_WAIT_US).
+PLAY_OUT_S = MAX_WAIT_US / 1e6
 #: Silence for a pause is written this many samples at a time (bounded memory), one second.
 SILENCE_CHUNK = AUDIO_RATE
 
@@ -212,17 +218,23 @@ class DeviceSink:
         self._stream.close()
 
 
-def open_sink(device: bool = True) -> tuple[AudioSink, str | None]:
-    """The sound device, or a null sink and one line saying why there is none."""
-    if not device:
-        return NullSink(), None
+def open_device(make: Callable[[], _Device]) -> tuple[_Device | None, str | None]:
+    """What ``make`` opens on the sound device, or None and one line saying why it cannot."""
     try:
-        return DeviceSink(), None
+        return make(), None
     except ImportError:
         reason = "no sound device (sounddevice is not installed): the sound is only recorded"
     except Exception as exc:  # PortAudio: no device, busy, no library
         reason = f"no sound device ({str(exc).splitlines()[0]}): the sound is only recorded"
-    return NullSink(), reason
+    return None, reason
+
+
+def open_sink(device: bool = True) -> tuple[AudioSink, str | None]:
+    """The sound device, or a null sink and one line saying why there is none."""
+    if not device:
+        return NullSink(), None
+    sink, reason = open_device(DeviceSink)
+    return (NullSink() if sink is None else sink), reason
 
 
 @dataclass
@@ -542,6 +554,16 @@ class AudioPlayout:
 
     # --- the end ---------------------------------------------------------------------------
 
+    def play_out(self, timeout_s: float = PLAY_OUT_S) -> None:
+        """Wait until what is buffered has been played (or ``timeout_s``): looked at once a
+        step (the play thread's notifications are for itself)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if self._stop or not (self._buffer or self._decoded):
+                    return
+            time.sleep(FRAME_US / 1e6)
+
     def close(self) -> None:
         """Stop playing (what is still buffered is dropped) and close the sink."""
         with self._lock:
@@ -678,8 +700,11 @@ class CallSound:
         fps: float,
         notify: Callable[[str], None],
         device: bool = True,
+        sink: AudioSink | None = None,
     ) -> None:
-        sink, self._no_device = open_sink(device)
+        self._no_device: str | None = None
+        if sink is None:  # a sink given (a room's mixer) is the caller's to speak of
+            sink, self._no_device = open_sink(device)
         self._notify = notify  # says there is no device when sound first comes, not before
         self.playout = AudioPlayout(sink, face_latency_from(shown))
         self.first_seq = first_seq
@@ -693,6 +718,10 @@ class CallSound:
             self._notify(self._no_device)
             self._no_device = None
         self.playout.push(packet, arrival_us)
+
+    def play_out(self) -> None:
+        """Play what is buffered (the sender said bye) before :meth:`finish`."""
+        self.playout.play_out()
 
     def finish(self, output: str | Path | None) -> dict[str, Any]:
         """Stop playing; put what was played into the MP4 at ``output`` (if any, and if

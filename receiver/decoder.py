@@ -268,6 +268,7 @@ class FaceDecoder:
             return {
                 "received": self.rem_dropped,
                 "applied": {},
+                "replaced": 0,
                 "waiting": 0,
                 "dropped": {"no REM": self.rem_dropped},
             }

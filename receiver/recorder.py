@@ -33,6 +33,15 @@ def crop_to(frame: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return frame[: shape[0], : shape[1]]
 
 
+def at_input_size(frame: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """A recorded frame beside its input of ``shape`` (h, w, ...): cut back, or scaled up
+    to it when the call ran smaller (``--max-size``)."""
+    cut = crop_to(frame, shape)
+    if cut.shape[:2] == tuple(shape[:2]):
+        return cut
+    return cv2.resize(cut, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
 class Mp4Recorder:
     """Writes BGR frames of one size to an MP4 file: MPEG-4 Part 2 through PyAV (4:2:0), which
     plays everywhere and encodes a 640x480 frame in about 2 ms on one thread; a small frame

@@ -40,7 +40,9 @@ from facewire.protocol.packets import RemPatch
 logger = logging.getLogger(__name__)
 
 #: Patches waiting for their frame, at most (a hostile sender's far-future patches must not
-#: pile up); the oldest is dropped first.
+#: pile up). Over it, the oldest that a newer one of its region would replace anyway goes
+#: first (a receiver that drew nothing for a second, its mouth's inside coming as references
+#: every few frames, lost nothing then), else the oldest.
 MAX_PENDING = 16
 
 
@@ -92,6 +94,7 @@ class RemMerger:
         self._order = 0
         self.received = 0
         self.applied: Counter[str] = Counter()
+        self.replaced = 0  # waiting, and left out for a newer one of their region
         self.dropped: Counter[str] = Counter()
 
     def _take_base(self, texture: np.ndarray) -> None:
@@ -159,8 +162,14 @@ class RemMerger:
             colour = ColourStats(packet.h_peak, packet.s_mean, packet.v_mean)
         if len(self._pending) >= MAX_PENDING:
             self._pending.sort()
-            self._pending.pop(0)
-            self.dropped["overrun"] += 1
+            regions = [p[2] for p in self._pending]
+            replaced = next((i for i, name in enumerate(regions) if name in regions[i + 1 :]), None)
+            if replaced is None:
+                self._pending.pop(0)
+                self.dropped["overrun"] += 1
+            else:
+                self._pending.pop(replaced)
+                self.replaced += 1
         self._order += 1
         self._pending.append((packet.seq, self._order, packet.region, image, colour))
         return True
@@ -212,11 +221,13 @@ class RemMerger:
         self.texture = texture
 
     def counts(self) -> dict[str, object]:
-        """Patches received, applied (by region), waiting for their frame to be drawn (at the
-        call's end: arrived after its last picture) and dropped (by reason)."""
+        """Patches received, applied (by region), replaced while waiting by a newer one of
+        their region, waiting for their frame to be drawn (at the call's end: arrived after
+        its last picture) and dropped (by reason)."""
         return {
             "received": self.received,
             "applied": dict(self.applied),
+            "replaced": self.replaced,
             "waiting": len(self._pending),
             "dropped": dict(self.dropped),
         }

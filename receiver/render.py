@@ -65,6 +65,8 @@ def _release(renderer: pyrender.OffscreenRenderer) -> None:
 
 # Camera distance in front of the nearest vertex, in pixels (image-space z units).
 _NEAR_MARGIN = 16.0
+# The framebuffer covers the face's box, its sides rounded up to this many pixels.
+_VIEWPORT_STEP = 64
 
 
 def _check_uint8_image(name: str, img: np.ndarray, shape: tuple[int, ...] | None) -> np.ndarray:
@@ -102,6 +104,11 @@ class FaceRenderer:
     (``glBufferData``, which orphans the old storage instead of waiting for it), rather than
     rebuilding the pyrender mesh: 220 against 195 fps at 468 vertices, equal at 7,257
     (benchmarks/bench_render.py).
+
+    Only the face's box is drawn: the framebuffer is the size of that box (rounded up), not
+    of the frame, so the work grows with the face's area. At 1280x720 the whole frame cost
+    4-10 ms more a frame on llvmpipe, loaded (clearing and resolving 4x-multisampled pixels
+    that the face never covers).
 
     Each renderer owns its own EGL context, so several can live in one process; use one
     renderer from one thread.
@@ -150,12 +157,11 @@ class FaceRenderer:
         self._primitive = self._make_primitive(np.zeros((self.n_vertices, 3), dtype=np.float32))
         self._mesh_node = self._scene.add(pyrender.Mesh([self._primitive]))
         # Orthographic: one world unit = one pixel; xmag/ymag are half the view size.
-        self._camera = pyrender.OrthographicCamera(
-            xmag=self.width / 2.0, ymag=self.height / 2.0, znear=1.0, zfar=100.0
-        )
+        self._camera = pyrender.OrthographicCamera(xmag=1.0, ymag=1.0, znear=1.0, zfar=100.0)
         self._camera_node = self._scene.add(self._camera, pose=np.eye(4))
+        self._viewport = (0, 0)  # the framebuffer's size: made at the first render
         self._renderer: pyrender.OffscreenRenderer | None = pyrender.OffscreenRenderer(
-            self.width, self.height
+            _VIEWPORT_STEP, _VIEWPORT_STEP
         )
         global _live_count
         with _live_lock:
@@ -168,7 +174,7 @@ class FaceRenderer:
         # pinned to 0.1.45, whose private Renderer._read_main_framebuffer(scene, flags) this
         # replaces for this instance).
         inner = self._renderer._renderer
-        self._window = (0, 0, self.width, self.height)  # x0, y0, x1, y1 read back
+        self._window = (0, 0, 0, 0)  # x0, y0, x1, y1 drawn and read back, frame pixels
         me = weakref.ref(self)  # no cycle through the renderer: a dropped one is freed at once
 
         def read(scene: object, flags: int) -> tuple[np.ndarray, None]:
@@ -283,14 +289,15 @@ class FaceRenderer:
         gl[:, 0] = v[:, 0]
         gl[:, 1] = -v[:, 1]
         gl[:, 2] = -v[:, 2]
-        self._place_camera(float(v[:, 2].min()), float(v[:, 2].max()))
-        self._set_positions(gl)
         # Nothing is drawn outside the vertices' bounding box (plus the antialiased edge).
         lo = np.floor(v[:, :2].min(axis=0)) - 2
         hi = np.ceil(v[:, :2].max(axis=0)) + 3
         x0, y0 = (int(np.clip(c, 0, n)) for c, n in zip(lo, (self.width, self.height), strict=True))
         x1, y1 = (int(np.clip(c, 0, n)) for c, n in zip(hi, (self.width, self.height), strict=True))
         self._window = (x0, y0, max(x0, x1), max(y0, y1))
+        self._fit_viewport(max(x1 - x0, 1), max(y1 - y0, 1))
+        self._place_camera(float(v[:, 2].min()), float(v[:, 2].max()))
+        self._set_positions(gl)
 
         rgba, _ = self._renderer.render(self._scene, flags=self._flags)
         self._uploaded = True
@@ -326,32 +333,52 @@ class FaceRenderer:
         assert self._renderer is not None
         self._renderer._platform.make_current()
 
+    def _fit_viewport(self, width: int, height: int) -> None:
+        """A framebuffer that holds a ``width`` x ``height`` box, its sides rounded up to
+        _VIEWPORT_STEP: a frame's picture depends on its own box alone (the projection
+        differs in the last bits with the framebuffer's size). Making a new one costs nothing
+        measurable on llvmpipe."""
+        vw = -(-width // _VIEWPORT_STEP) * _VIEWPORT_STEP
+        vh = -(-height // _VIEWPORT_STEP) * _VIEWPORT_STEP
+        if (vw, vh) == self._viewport:
+            return
+        self._viewport = (vw, vh)
+        assert self._renderer is not None
+        self._renderer.viewport_width, self._renderer.viewport_height = vw, vh
+        self._camera.xmag, self._camera.ymag = vw / 2.0, vh / 2.0
+
     def _read_rgba(self, inner: pyrender.Renderer) -> np.ndarray:
-        """Resolve the multisampled framebuffer in ``self._window`` and read it: (y1 - y0,
-        x1 - x0, 4) uint8, top row first."""
+        """Resolve the multisampled framebuffer (its top left corner is the frame's pixel
+        ``self._window``[:2]) and read the window: (y1 - y0, x1 - x0, 4) uint8, top row
+        first."""
         x0, y0, x1, y1 = self._window
         if x1 <= x0 or y1 <= y0:
             return np.zeros((max(y1 - y0, 0), max(x1 - x0, 0), 4), np.uint8)
         _, height = inner._main_fb_dims
-        gy0, gy1 = height - y1, height - y0  # GL rows start at the bottom
+        w, h = x1 - x0, y1 - y0
+        gy0 = height - h  # GL rows start at the bottom
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb_ms)
         GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, inner._main_fb)
         GL.glBlitFramebuffer(
-            x0, gy0, x1, gy1, x0, gy0, x1, gy1, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
+            0, gy0, w, height, 0, gy0, w, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
         )
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb)
-        buf = GL.glReadPixels(x0, gy0, x1 - x0, y1 - y0, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
-        rgba = np.frombuffer(buf, dtype=np.uint8).reshape(y1 - y0, x1 - x0, 4)
+        buf = GL.glReadPixels(0, gy0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
+        rgba = np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 4)
         return rgba[::-1]
 
     def _place_camera(self, z_min: float, z_max: float) -> None:
-        # GL window x = X - cx + W/2 must equal x + 0.5 (pixel centre), so cx = W/2 - 0.5;
-        # likewise for the flipped rows, cy = -(H/2 - 0.5). The camera sits _NEAR_MARGIN in
-        # front of the nearest vertex and the far plane just behind the farthest one, so the
-        # depth range always fits the data whatever the pose's translation in z.
+        # The framebuffer's (vw x vh) top left pixel is the frame's (x0, y0). GL window
+        # x = X - cx + vw/2 must equal x - x0 + 0.5 (pixel centre), so cx = x0 + vw/2 - 0.5;
+        # likewise for the flipped rows (window y = vh - (y - y0) - 0.5 from the bottom),
+        # cy = -(y0 + vh/2 - 0.5). The camera sits _NEAR_MARGIN in front of the nearest
+        # vertex and the far plane just behind the farthest one, so the depth range always
+        # fits the data whatever the pose's translation in z.
+        x0, y0 = self._window[:2]
+        vw, vh = self._viewport
         pose = np.eye(4)
-        pose[0, 3] = self.width / 2.0 - 0.5
-        pose[1, 3] = -(self.height / 2.0 - 0.5)
+        pose[0, 3] = x0 + vw / 2.0 - 0.5
+        pose[1, 3] = -(y0 + vh / 2.0 - 0.5)
         pose[2, 3] = -z_min + _NEAR_MARGIN
         self._scene.set_pose(self._camera_node, pose)
         self._camera.znear = _NEAR_MARGIN / 2.0
@@ -401,13 +428,19 @@ class FaceRenderer:
             return out, mask
         if feather_px > 0:
             # Weight by the distance to the face's edge; colour is premultiplied by alpha, so
-            # both scale together.
+            # both scale together. Deeper than the feather the face covers the background, and
+            # outside it the background stays: only the band between is blended.
             inside = np.pad((alpha > 127).astype(np.uint8), 1)
             distance = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
-            weight = np.minimum(distance / feather_px, 1.0)
-            a = alpha * weight
-            blended = color * weight[:, :, None] + out[box] * (1.0 - a / 255.0)[:, :, None]
-            out[box] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
+            under = out[box].copy()  # contiguous, so its flat view below writes into it
+            cv2.copyTo(color, (distance >= feather_px).view(np.uint8), under)
+            band = np.flatnonzero((distance > 0) & (distance < feather_px))
+            weight = distance.ravel()[band] * np.float32(1.0 / feather_px)
+            keep = 1.0 - alpha.ravel()[band] * weight * np.float32(1.0 / 255.0)
+            flat = under.reshape(-1, 3)
+            blended = color.reshape(-1, 3)[band] * weight[:, None] + flat[band] * keep[:, None]
+            flat[band] = np.minimum(blended + 0.5, 255.0).astype(np.uint8)
+            out[box] = under
             return out, mask
         keep = (255 - alpha).astype(np.uint16)[:, :, None]
         blended = color + ((out[box] * keep + 127) // 255).astype(np.uint8)

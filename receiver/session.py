@@ -104,6 +104,18 @@ class ReceiverReport:
     media: dict[str, Any] = field(default_factory=dict)
     refined: int = 0  # full snapshots taken after their draft
 
+    def latency_each_second(self) -> list[float]:
+        """The longest latency of the pictures shown in each second from the first one, ms
+        (where a call was slow, not only how often: a join's first seconds, a burst)."""
+        count = min(len(self.latency_ms), len(self.shown))  # appended together
+        if count == 0:
+            return []
+        ready = np.asarray([r for r, _ in self.shown[:count]], np.int64)
+        second = (ready - ready[0]) // 1_000_000
+        most = np.zeros(int(second[-1]) + 1)
+        np.maximum.at(most, second, np.asarray(self.latency_ms[:count]))
+        return [round(float(v), 1) for v in most]
+
     def as_dict(self) -> dict:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
         wait = np.asarray(self.buffer_ms) if self.buffer_ms else np.zeros(1)
@@ -126,6 +138,7 @@ class ReceiverReport:
                 "p99": float(np.percentile(lat, 99)),
                 "max": float(lat.max()),
             },
+            "latency_ms_each_second": self.latency_each_second(),
             "malformed": self.malformed,
             "refused_snapshots": self.refused_snapshots,
             "ignored_sessions": self.ignored_sessions,

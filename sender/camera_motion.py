@@ -40,23 +40,47 @@ MAX_SHIFT = 0.15
 #: background: a second person moving would pass for the camera.
 PEOPLE_THRESHOLD = 0.2
 LK_WINDOW = 21
+#: The points are followed in the frames scaled down to at most this many pixels on their
+#: longer side: building the two frames' pyramids took most of the time, and grew with the
+#: frame (2.4 ms at 1280x720 on one core, loaded); a camera's shake is measured to a tenth of
+#: a pixel there, a fifth of the channel's step.
+FOLLOW_SIDE = 640
 _LK_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+
+
+def _person_parts(outline: np.ndarray) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """Where the person may be, given the face outline (k, 2) in pixels: the head, a convex
+    polygon (m, 2), and the body below the chin, shoulders and arms reaching BODY_WIDTH face
+    widths out: (x0, x1, y0), everything right of x0, left of x1 and below y0."""
+    centre = outline.mean(0)
+    head = centre + PERSON_REACH * (outline - centre)
+    hull = cv2.convexHull(head.astype(np.float32)).reshape(-1, 2)
+    half = BODY_WIDTH * np.ptp(outline[:, 0]) / 2
+    return hull, (centre[0] - half, centre[0] + half, float(outline[:, 1].max()))
 
 
 def person_mask(shape: tuple[int, int], outline: np.ndarray) -> np.ndarray:
     """(h, w) bool: where the person may be, given the face outline (k, 2) in pixels."""
     h, w = shape
-    centre = outline.mean(0)
-    head = centre + PERSON_REACH * (outline - centre)
+    hull, (bx0, bx1, by0) = _person_parts(outline)
     mask = np.zeros((h, w), np.uint8)
-    hull = cv2.convexHull(head.astype(np.float32)).reshape(-1, 2)
     cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
-    # The body: below the chin, shoulders and arms reaching BODY_WIDTH face widths out.
-    half = BODY_WIDTH * np.ptp(outline[:, 0]) / 2
-    x0, x1 = int(max(0, centre[0] - half)), int(min(w, centre[0] + half + 1))
-    y0 = int(np.clip(outline[:, 1].max(), 0, h))
-    mask[y0:, x0:x1] = 1
+    x0, x1 = int(max(0, bx0)), int(min(w, bx1 + 1))
+    mask[int(np.clip(by0, 0, h)) :, x0:x1] = 1
     return mask.astype(bool)
+
+
+def person_covers(points: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of ``points`` (n, 2) :func:`person_mask` covers (to within its
+    rounding to pixels), found without drawing the frame's mask."""
+    hull, (bx0, bx1, by0) = _person_parts(outline)
+    # Inside a convex polygon: on the same side of every edge.
+    edges = np.roll(hull, -1, axis=0) - hull
+    offsets = points[:, None, :] - hull[None]
+    cross = edges[None, :, 0] * offsets[:, :, 1] - edges[None, :, 1] * offsets[:, :, 0]
+    head = (cross >= 0).all(1) | (cross <= 0).all(1)
+    body = (points[:, 0] >= bx0) & (points[:, 0] <= bx1) & (points[:, 1] >= by0)
+    return head | body
 
 
 class CameraTracker:
@@ -69,8 +93,10 @@ class CameraTracker:
     def __init__(
         self, image: np.ndarray, outline: np.ndarray, people: np.ndarray | None = None
     ) -> None:
-        self._reference = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        shape = self._reference.shape
+        reference = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        shape = reference.shape
+        self._scale = min(1.0, FOLLOW_SIDE / max(shape))
+        self._reference = self._followed(reference)
         nobody = ~person_mask(shape, outline)
         if people is not None:
             # Grown by half the LK window: a corner whose window reaches into a person that
@@ -80,7 +106,7 @@ class CameraTracker:
         background = nobody.astype(np.uint8)
         side = min(shape)
         corners = cv2.goodFeaturesToTrack(
-            self._reference,
+            reference,
             MAX_CORNERS,
             qualityLevel=0.01,
             minDistance=max(4, side // 40),
@@ -98,24 +124,22 @@ class CameraTracker:
         """
         if len(self._points) < MIN_INLIERS:
             return self.homography
-        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        gray = self._followed(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
         guess = cv2.perspectiveTransform(self._points[None], self.homography)[0]
         moved, status, _ = cv2.calcOpticalFlowPyrLK(
             self._reference,
             gray,
-            self._points,
-            guess.astype(np.float32).copy(),
+            self._to_followed(self._points),
+            self._to_followed(guess),
             winSize=(LK_WINDOW, LK_WINDOW),
             maxLevel=3,
             criteria=_LK_CRITERIA,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
+        moved = (moved + 0.5) / np.float32(self._scale) - 0.5
         good = status.ravel() == 1
         if outline is not None:
-            h, w = gray.shape
-            covered = person_mask((h, w), outline)
-            xy = np.clip(np.round(moved).astype(int), 0, [w - 1, h - 1])
-            good &= ~covered[xy[:, 1], xy[:, 0]]
+            good &= ~person_covers(moved, outline)
         if good.sum() < MIN_INLIERS:
             return self.homography
         # A similarity (shift, roll, zoom): what a shaking camera does to the scene, and few
@@ -130,18 +154,30 @@ class CameraTracker:
             # Nor is a small motion held, once a still camera fits the points as well: a shake
             # seen once, or points slipping along a bare wall, must not shift the scene for
             # the rest of the call.
-            small = self._corner_shift(self.homography, gray.shape) <= SMALL_PX
+            small = self._corner_shift(self.homography, image.shape) <= SMALL_PX
             still = self._support(np.eye(3), good, moved)
             if small and still >= self._support(self.homography, good, moved):
                 self.homography = np.eye(3)
             return self.homography
         homography = np.vstack([found, [0.0, 0.0, 1.0]])
-        h, w = gray.shape
-        if self._corner_shift(homography, gray.shape) > MAX_SHIFT * max(h, w):
+        h, w = image.shape[:2]
+        if self._corner_shift(homography, image.shape) > MAX_SHIFT * max(h, w):
             return self.homography  # implausible for a camera shaking: keep the last one
         self.homography = homography
         self.inliers = int(inlier.sum())
         return self.homography
+
+    def _followed(self, gray: np.ndarray) -> np.ndarray:
+        """``gray`` at the size the points are followed in."""
+        if self._scale >= 1.0:
+            return gray
+        h, w = gray.shape
+        size = (round(w * self._scale), round(h * self._scale))
+        return cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+
+    def _to_followed(self, points: np.ndarray) -> np.ndarray:
+        """(n, 2) float32 frame pixels in the picture followed (pixel centres kept)."""
+        return ((points + 0.5) * self._scale - 0.5).astype(np.float32)
 
     def _support(self, homography: np.ndarray, good: np.ndarray, moved: np.ndarray) -> int:
         """How many of the followed points ``homography`` puts within RANSAC_PX of where

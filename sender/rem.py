@@ -15,15 +15,15 @@ is coded as WebP at the best quality of :data:`QUALITIES` that fits its share of
 (a 30-200 byte patch is mostly header as a JPEG; docs/what-we-tried.md, "REM patches: how
 to code one").
 
-All of it is paid from a token bucket filled at :data:`BUDGET_KBPS`. The region that has
-waited longest goes first, the eyes with a head start of :data:`EYE_HEAD_START` frames (a
-blink lasts a few frames; a talking mouth changes all the time), and the mouth's inside may
-only spend what leaves room for both eyes. Every patch carries the reference skin colour
-(peak hue, mean saturation and value over the eye regions: seed 003 section 2.3), which the
-receiver adapts the whole texture to (Eq. 2). It is measured every frame and followed over
-:data:`COLOUR_TIME_S`: one frame's, over the few dozen skin texels of two eye regions, moves
-by 5-10% with every blink and glance, and each patch then made the whole face brighter or
-darker.
+The eyes are paid from a token bucket filled at :data:`BUDGET_KBPS`, the one that has waited
+longest first, and the mouth's inside from one of its own filled at
+:data:`MOUTH_BUDGET_KBPS`: a talking mouth changes all the time, and behind the eyes it
+waited while the mouth stayed open (a blink lasts a few frames). Every patch carries the
+reference skin colour (peak hue, mean saturation and value over the eye regions: seed 003
+section 2.3), which the receiver adapts the whole texture to (Eq. 2). It is measured every
+frame and followed over :data:`COLOUR_TIME_S`: one frame's, over the few dozen skin texels
+of two eye regions, moves by 5-10% with every blink and glance, and each patch then made the
+whole face brighter or darker.
 
 Keyframes repeat what a lost patch would have brought: a keyframe a receiver asked for (it
 just joined, or lost packets) repeats every region's image, one of the snapshot's as a
@@ -53,6 +53,15 @@ logger = logging.getLogger(__name__)
 #: blink may borrow (BLINK_DEBT_S) and the repeats keyframes owe: foreman's 6 s came to 4.07
 #: kbit/s at 3.9, 3.88 at 3.7.
 BUDGET_KBPS = 3.7
+#: The mouth's inside has a bucket of its own, filled at this (payload, on average), beside
+#: the eyes' BUDGET_KBPS: sharing theirs, it waited behind them for as long as the mouth stayed
+#: open, and the open mouth showed the snapshot's shut lips stretched (a dark blob, no
+#: teeth). Images it sent once come back as references (REM_CACHE of them), so a talking
+#: mouth soon costs a few bytes a change.
+MOUTH_BUDGET_KBPS = 1.5
+#: The mouth's bucket holds this many seconds of its budget: a large face's inside (a few
+#: hundred bytes) must fit.
+MOUTH_BUCKET_S = 5.0
 #: Most the bucket holds, in seconds of budget.
 BUCKET_S = 2.5
 #: Seconds of budget in the bucket when the session starts.
@@ -175,7 +184,9 @@ class _Region:
     score: float = 0.0  # its change in the last frame (0: none)
     dirty: bool = False  # something was sent for it since the last keyframe
     changed_at: int = -(10**9)  # the last frame it was seen changed
-    sent_at: int = -(10**9)  # the frame of its last patch
+    # The frame of its last image. A reference to an image held is no lid caught on its way:
+    # after one the next change waits to settle (else a blink went out half shut).
+    sent_at: int = -(10**9)
 
     def choices(self) -> list[_Image]:
         return [self.base, *self.held]
@@ -223,6 +234,7 @@ class RemEncoder:
         self.fps = fps
         self.set_budget(budget_kbps)
         self.tokens = budget_kbps * 1000.0 / 8.0 * START_S
+        self.mouth_tokens = self.mouth_rate * self.fps * START_S
         # Bytes the call could still have spent under LIMIT_KBPS on average since it began:
         # never less than the bucket's tokens, as the bucket fills more slowly.
         self.limit = LIMIT_KBPS * 1000.0 / 8.0 / fps
@@ -282,9 +294,16 @@ class RemEncoder:
         self.colour: ColourStats | None = None
 
     def set_budget(self, kbps: float) -> None:
-        """Fill the bucket at ``kbps`` from now on (it holds BUCKET_S of it)."""
+        """Fill the bucket at ``kbps`` from now on (it holds BUCKET_S of it); the mouth's
+        inside's at its share of that (MOUTH_BUDGET_KBPS against BUDGET_KBPS)."""
         self.rate = kbps * 1000.0 / 8.0 / self.fps  # bytes per frame
         self.capacity = kbps * 1000.0 / 8.0 * BUCKET_S
+        self.mouth_rate = self.rate * MOUTH_BUDGET_KBPS / BUDGET_KBPS
+        self.mouth_capacity = self.mouth_rate * self.fps * MOUTH_BUCKET_S
+
+    def _tokens(self, name: str) -> float:
+        """Bytes region ``name``'s bucket holds."""
+        return self.mouth_tokens if name == MOUTH_INTERIOR else self.tokens
 
     def from_texture(self, texture: np.ndarray, name: str) -> np.ndarray:
         """Region ``name`` of a (T, T, 3) texture on the patch grid."""
@@ -416,6 +435,7 @@ class RemEncoder:
         the receiver's opening should show.
         """
         self.tokens = min(self.capacity, self.tokens + self.rate)
+        self.mouth_tokens = min(self.mouth_capacity, self.mouth_tokens + self.mouth_rate)
         self.headroom += self.limit
         ext = self.layout.vertices(vertices)
         mouth = ext if tracked is None else self.layout.vertices(tracked)
@@ -429,6 +449,7 @@ class RemEncoder:
         }
         self._follow_colour(cuts)
         candidates = []
+        inside_due = False  # the mouth's inside changed, and settled
         pending = 0  # regions changed, ready or still settling: they share the bucket
         for name in self.regions:
             state = self.states[name]
@@ -445,15 +466,24 @@ class RemEncoder:
             self.counts.changed_frames[name] = self.counts.changed_frames.get(name, 0) + 1
             state.changed_at = seq
             state.waiting += 1
-            pending += 1
+            pending += name != MOUTH_INTERIOR  # it has a bucket of its own
             rising, state.score = score > SETTLED * state.score, score
             if rising and state.waiting < SETTLE_FRAMES and not state.moving_on(seq):
                 continue  # a lid still closing: send where it comes to rest
+            if name == MOUTH_INTERIOR:
+                inside_due = True  # it waits for nothing else
+                continue
             head = EYE_HEAD_START if name in EYES else 0
             weight = float((self.layout.boxes[name].alpha * seen).sum())
             candidates.append((state.waiting + head, score * weight, name, score))
         candidates.sort(reverse=True)
         out: list[RemPatch] = []
+        if inside_due:
+            packet = self._send(seq, MOUTH_INTERIOR, *cuts[MOUTH_INTERIOR], 1, 0.0)
+            if packet is None:
+                self.counts.waited += 1
+            else:
+                out.append(packet)
         # Both eyes changed at once: a blink or a glance, which may spend the bytes kept for
         # the eyes; anything else (one eye alone: mostly the light or the fit moving) only
         # what leaves them. Each takes its share among the regions waiting (a lid still
@@ -493,7 +523,7 @@ class RemEncoder:
         to fit its share of what the bucket holds beyond ``reserve`` (negative: into debt);
         None, nothing spent, when the bucket cannot pay."""
         state = self.states[name]
-        available = self.tokens - reserve
+        available = self._tokens(name) - reserve
         scores = [(self.change(name, patch, seen, img), i) for i, img in enumerate(state.choices())]
         score, i = min(scores)
         if score <= SAME_FRACTION and state.choices()[i] is not state.current:
@@ -522,7 +552,6 @@ class RemEncoder:
         self._pay(packet, repeat=False)
         state = self.states[name]
         state.current, state.waiting, state.score, state.dirty = held, 0, 0.0, True
-        state.sent_at = seq
         return packet
 
     def _eye_reserve(self, but: set[str]) -> float:
@@ -562,8 +591,11 @@ class RemEncoder:
         size = len(bytes(packet))
         if size > available:
             return False
-        self.tokens -= size
-        self.headroom -= size
+        if packet.region == MOUTH_INTERIOR:
+            self.mouth_tokens -= size
+        else:
+            self.tokens -= size
+            self.headroom -= size
         self.counts.add(packet, size, repeat)
         return True
 
@@ -600,7 +632,8 @@ class RemEncoder:
                 old = current.packet
                 assert old is not None
                 packet = RemPatch(seq, name, old.codec, old.data, h, s, v)
-            available = math.inf if owed else self.tokens - self._eye_reserve(set())
+            reserve = 0.0 if name == MOUTH_INTERIOR else self._eye_reserve(set())
+            available = math.inf if owed else self._tokens(name) - reserve
             if not self._pay(packet, repeat=True, available=available):
                 continue
             if packet.reference is None:

@@ -235,8 +235,11 @@ def restamped(frames: list[CapturedFrame]) -> list[CapturedFrame]:
 
 
 def capped_size(width: int, height: int, max_width: int, max_height: int) -> tuple[int, int]:
-    """(width, height) scaled down, aspect kept, to fit ``max_width`` x ``max_height``; even
-    sides (video codecs want them); unchanged when it already fits."""
+    """(width, height) scaled down, aspect kept, to fit ``max_width`` x ``max_height`` turned
+    the way the input is (a phone held upright, 720x1280, fits 1280x720 as it is); even sides
+    (video codecs want them); unchanged when it already fits."""
+    long, short = max(max_width, max_height), min(max_width, max_height)
+    max_width, max_height = (long, short) if width >= height else (short, long)
     scale = min(1.0, max_width / width, max_height / height)
     if scale >= 1.0:
         return width, height

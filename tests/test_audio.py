@@ -34,6 +34,7 @@ from facewire.sender.audio import (
     sound_for,
 )
 from facewire.sender.capture import demo_clip_path
+from tests.voices import talking_clip, talking_voice, voice_match
 
 FIXTURES = Path(__file__).parent / "fixtures" / "packets"
 
@@ -345,46 +346,6 @@ def test_mux_puts_the_sound_beside_the_video(tmp_path: Path) -> None:
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 30
 
 
-def _voice_match(recorded: np.ndarray, speech: np.ndarray) -> tuple[float, float]:
-    """(correlation, lag in ms) of the loudness of ``recorded`` against ``speech``, per 5 ms:
-    two codecs (Opus, then the recording's AAC) keep the voice, not its waveform's phase."""
-    step = AUDIO_RATE // 200
-
-    def loudness(pcm: np.ndarray) -> np.ndarray:
-        n = len(pcm) // step * step
-        return np.sqrt((pcm[:n].astype(float).reshape(-1, step) ** 2).mean(axis=1))
-
-    a, b = loudness(recorded), loudness(speech)
-    n = min(len(a), len(b))
-    best = (-1.0, 0.0)
-    for lag in range(-60, 61):  # +-300 ms
-        x = a[max(lag, 0) : n + min(lag, 0)]
-        y = b[max(-lag, 0) : n - max(lag, 0)]
-        best = max(best, (float(np.corrcoef(x, y)[0, 1]), lag * 5.0))
-    return best
-
-
-def _talking_clip(folder: Path) -> Path:
-    """The bundled clip's talking part (frames 180-299) with its voice as the file's own
-    audio track: a clip that speaks from its first frame, as a call often does."""
-    import cv2
-
-    from facewire.sender.capture import VideoSource
-
-    path = folder / "talking.mp4"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (640, 480))
-    for frame in VideoSource(demo_clip_path()).frames():
-        if frame.index >= 180:
-            writer.write(frame.image)
-    writer.release()
-    track = open_track(demo_speech_path())
-    assert track is not None
-    speech = track.read(10 * AUDIO_RATE)
-    assert speech is not None
-    mux_audio(path, speech[6 * AUDIO_RATE :])
-    return path
-
-
 @pytest.mark.parametrize("case", ["voice-at-6-s", "voice-from-the-start", "no-sound"])
 def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: str) -> None:
     """``facewire send`` and ``facewire receive --record`` as a user runs them: the recording
@@ -396,7 +357,10 @@ def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: s
     port = free_ports(2)
     record = tmp_path / "call.mp4"
     talking = case == "voice-from-the-start"
-    source = ("--input", str(_talking_clip(tmp_path))) if talking else ("--frames", "240")
+    clip = tmp_path / "talking.mp4"
+    source = (
+        ("--input", str(talking_clip(clip, talking_voice()))) if talking else ("--frames", "240")
+    )
     receiver = Facewire(
         "receive", "--bind", f"tcp://127.0.0.1:{port}", "--plain", "--once",
         "--record", str(record),
@@ -420,7 +384,7 @@ def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: s
         said = track.read(len(recorded))
     assert said is not None
     spoken = slice(0 if talking else 6 * AUDIO_RATE, min(len(recorded), len(said)))
-    correlation, lag_ms = _voice_match(recorded[spoken], said[spoken])
+    correlation, lag_ms = voice_match(recorded[spoken], said[spoken])
     print(f"voice correlation {correlation:.2f} at {lag_ms:+.0f} ms")
     assert correlation > 0.9 and abs(lag_ms) <= 20
 

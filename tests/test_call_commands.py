@@ -177,6 +177,16 @@ def test_a_large_input_is_sent_at_the_capped_size(tmp_path: Path) -> None:
     assert first.shape == (200, 266, 3)
 
 
+def test_the_size_cap_is_turned_the_way_the_input_is() -> None:
+    from facewire.sender.session import capped_size
+
+    assert capped_size(720, 1280, 1280, 720) == (720, 1280)  # a phone held upright
+    assert capped_size(1080, 1920, 1280, 720) == (720, 1280)
+    assert capped_size(1920, 1080, 1280, 720) == (1280, 720)
+    assert capped_size(1920, 1080, 720, 1280) == (1280, 720)
+    assert capped_size(640, 480, 320, 200) == (266, 200)
+
+
 def test_two_way_call_ends_when_one_end_hangs_up(tmp_path: Path, keys: Path) -> None:
     port = free_ports(4)
     ends = []

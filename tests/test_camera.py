@@ -15,7 +15,7 @@ from facewire.models.camera import (
     homography_from_corners,
 )
 from facewire.models.face_channels import HYSTERESIS
-from facewire.sender.camera_motion import CameraTracker, person_mask
+from facewire.sender.camera_motion import CameraTracker, person_covers, person_mask
 
 W, H = 352, 288
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -163,3 +163,42 @@ def test_a_second_person_moving_is_not_taken_for_the_camera() -> None:
 
     assert error(found) < 0.75
     assert error(lost) > 3.0
+
+
+def test_the_points_the_person_covers_are_those_of_the_drawn_mask() -> None:
+    # Each frame's followed points are checked against the person's shape itself, not a mask
+    # of the whole frame drawn for them: the same answer, away from the mask's pixel edges.
+    t = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[176 + 30 * np.cos(t), 110 + 40 * np.sin(t)]
+    mask = person_mask((H, W), outline)
+    ys, xs = np.mgrid[0:H, 0:W]
+    points = np.c_[xs.ravel(), ys.ravel()].astype(np.float32)
+    covers = person_covers(points, outline).reshape(H, W)
+    edge = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8))
+    assert 0.2 < mask.mean() < 0.8
+    assert np.array_equal(covers[edge == 0], mask[edge == 0])
+
+
+def test_a_large_frame_is_followed_scaled_down_to_a_tenth_of_a_pixel() -> None:
+    # A 1280x720 frame's points are followed in it scaled to FOLLOW_SIDE: a zoom and a roll
+    # with a shift still come out to a tenth of a pixel at the frame's corners.
+    width, height = 1280, 720
+    photo = cv2.imread(str(FIXTURE))
+    scene = cv2.GaussianBlur(np.tile(photo, (3, 4, 1))[: height + 80, : width + 80], (3, 3), 0)
+    t = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[width / 2 + 90 * np.cos(t), 260 + 115 * np.sin(t)]
+    still = np.array([[1.0, 0.0, -40.0], [0.0, 1.0, -40.0]])
+    tracker = CameraTracker(
+        cv2.warpAffine(scene, still, (width, height), borderMode=cv2.BORDER_REFLECT), outline
+    )
+    zoom, roll = 1.004, np.deg2rad(0.4)
+    moved = still.copy()
+    moved[:, :2] = zoom * np.array([[np.cos(roll), -np.sin(roll)], [np.sin(roll), np.cos(roll)]])
+    moved[:, 2] += [2.3, -1.7]
+    view = cv2.warpAffine(scene, moved, (width, height), borderMode=cv2.BORDER_REFLECT)
+    found = tracker.update(view, outline)
+    truth = np.vstack([moved, [0, 0, 1]]) @ np.linalg.inv(np.vstack([still, [0, 0, 1]]))
+    grid = frame_corners(width, height)[None].astype(np.float32)
+    error = cv2.perspectiveTransform(grid, found) - cv2.perspectiveTransform(grid, truth)
+    assert np.abs(error).max() < 0.1, error
+    assert np.abs(corners_from_homography(truth, width, height)).max() > 4.0  # it did move

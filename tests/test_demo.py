@@ -224,3 +224,22 @@ def test_any_size_real_face(tmp_path: Path) -> None:
     # ...but the rebuild must follow the head: better than holding the first picture.
     moving = np.array(still) < 18.0
     assert moving.sum() > 10 and np.all(np.array(follows)[moving] > np.array(still)[moving] + 1.0)
+
+
+def test_a_large_input_is_called_at_the_capped_size(tmp_path: Path) -> None:
+    # As `facewire send` does: --max-size scales the input before tracking, the receiver
+    # renders at that size, and the side-by-side shows the input beside the rebuild scaled up.
+    out, compare = tmp_path / "out.mp4", tmp_path / "cmp.mp4"
+    stats = tmp_path / "stats.json"
+    rc = main(
+        ["demo", "--frames", "20", "--max-size", "320x320", "--output", str(out),
+         "--compare", str(compare), "--stats", str(stats)]
+    )  # fmt: skip
+    assert rc == 0
+    report = json.loads(stats.read_text())
+    assert (report["width"], report["height"]) == (320, 240) and report["frames_out"] == 20
+    assert _read(out)[0].shape == (240, 320, 3)
+    pair = _read(compare)[10]
+    assert pair.shape == (480, 1280, 3)
+    source = _read(demo_clip_path())[10]
+    assert psnr(pair[:, 640:], source) > 20.0  # the rebuild, scaled up, looks like the input

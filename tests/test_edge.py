@@ -86,7 +86,8 @@ def test_the_receiver_moves_the_edge_and_keeps_the_face_inside() -> None:
     face = np.zeros((H, W), np.uint8)
     cv2.fillPoly(face, [np.round(o).astype(np.int32)], 1)
     band = 4.0
-    out = correct(drawn, face.astype(bool), o, np.tile([2.0, -1.0], (EDGE_POINTS, 1)), band)
+    vectors = np.tile([2.0, -1.0], (EDGE_POINTS, 1))
+    out = correct(drawn.copy(), face.astype(bool), o, vectors, band)  # moved in place
     inside = cv2.distanceTransform(face, cv2.DIST_L2, 3) > band
     assert np.array_equal(out[inside], drawn[inside])
     # Just outside the outline the picture is back where the camera saw it.
@@ -108,10 +109,10 @@ def test_a_hostile_correction_moves_the_picture_no_further_than_the_limit() -> N
     cv2.fillPoly(face, [np.round(o).astype(np.int32)], 1)
     picture = texture()
     huge = np.tile([2.0**24, -(2.0**24)], (EDGE_POINTS, 1))  # the channel's largest values
-    out = correct(picture, face.astype(bool), o, huge, 3.0)
+    out = correct(picture.copy(), face.astype(bool), o, huge, 3.0)
     limit = 0.1 * np.ptp(o[:, 0])
     at_limit = np.tile([limit, -limit] / np.hypot(1.0, 1.0), (EDGE_POINTS, 1))
-    assert np.array_equal(out, correct(picture, face.astype(bool), o, at_limit, 3.0))
+    assert np.array_equal(out, correct(picture.copy(), face.astype(bool), o, at_limit, 3.0))
 
 
 # --- the sender's measure ---------------------------------------------------------------------

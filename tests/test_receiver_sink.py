@@ -95,3 +95,17 @@ def test_sink_sees_each_rendered_picture_and_stop_ends_the_call(tmp_path: Path) 
     assert lines[0].startswith("waiting for a sender at tcp://127.0.0.1:")
     assert lines[1] == f"session {snapshot.session_id}: 640x480 at 30 fps"
     assert np.isfinite(report["latency_ms"]["p90"])
+
+
+def test_the_stats_say_in_which_second_pictures_were_late() -> None:
+    from facewire.receiver.session import ReceiverReport
+
+    report = ReceiverReport()
+    start = 5_000_000
+    for i in range(90):  # three seconds at 30 fps, the second one with a 400 ms stall in it
+        ready = start + i * 33_333
+        late = 400.0 if i == 40 else 30.0 + i % 3
+        report.latency_ms.append(late)
+        report.shown.append((ready, ready - round(late * 1000)))
+    assert report.as_dict()["latency_ms_each_second"] == [32.0, 400.0, 32.0]
+    assert ReceiverReport().as_dict()["latency_ms_each_second"] == []

@@ -307,3 +307,44 @@ def test_a_frame_owes_nothing_to_the_frame_before(mesh):
     # Away from the second face (where the first one was, too) the background shows exactly.
     far = ~cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert np.array_equal(again[far], bg[far])
+
+
+def test_the_face_drawn_in_a_large_frame_is_the_face_drawn_in_a_small_one(mesh):
+    # Only the face's box is drawn, wherever it lies in the frame: a face at the bottom right
+    # of a 1280x720 frame (its framebuffer there, not at the frame's corner) comes out as the
+    # same face in a 640x480 frame, pixel for pixel, feathered edge and mask too.
+    small_at, large_at = (320.0, 250.0, 500.0), (900.5, 470.25, 500.0)
+    shift = (int(large_at[0] - small_at[0]), int(large_at[1] - small_at[1]))
+    small_at = (small_at[0] + large_at[0] % 1, small_at[1] + large_at[1] % 1, small_at[2])
+    large_bg = cv2.resize(gradient_background(), (1280, 720))
+    small_bg = large_bg[shift[1] : shift[1] + H, shift[0] : shift[0] + W].copy()
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as small:
+        want, want_mask = small.render(frontal(mesh.vertices, t=small_at), small_bg, 8.0)
+    with FaceRenderer(1280, 720, mesh.triangles, mesh.uvs, smooth_texture()) as large:
+        got, mask = large.render(frontal(mesh.vertices, t=large_at), large_bg.copy(), 8.0)
+    part = np.s_[shift[1] : shift[1] + H, shift[0] : shift[0] + W]
+    assert want_mask.sum() > 20000
+    assert np.array_equal(mask[part], want_mask) and mask.sum() == want_mask.sum()
+    assert np.abs(got[part].astype(int) - want).max() <= 1
+    outside = np.ones(mask.shape, bool)
+    outside[part] = False
+    assert np.array_equal(got[outside], large_bg[outside])
+
+
+def test_the_face_fades_in_over_the_feather(mesh):
+    # With a feather of F pixels, a pixel d pixels inside the face's edge shows d / F of the
+    # face (over black and over white alike), and all of it from F on: only that band is
+    # blended, and all of it is.
+    flat = np.full((64, 64, 3), 200, np.uint8)
+    verts = frontal(mesh.vertices)
+    feather = 10.0
+    with FaceRenderer(W, H, mesh.triangles, mesh.uvs, flat) as r:
+        over_black, mask = r.render(verts, np.zeros((H, W, 3), np.uint8), feather_px=feather)
+        over_white, _ = r.render(verts, np.full((H, W, 3), 255, np.uint8), feather_px=feather)
+    shown = 1.0 - (over_white.astype(float) - over_black).mean(axis=2) / 255.0
+    inside = np.pad(mask.astype(np.uint8), 1)
+    depth = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
+    band = (depth >= 1.0) & (depth < feather)
+    assert band.sum() > 1000
+    assert np.abs(shown[band] - depth[band] / feather).max() < 0.02
+    assert (shown[depth >= feather] > 0.99).all()

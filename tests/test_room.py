@@ -1,5 +1,6 @@
 """facewire room end to end: real participants (child processes) through a real nats-server on
-loopback, the bundled clip scaled down so that three fit on two cores."""
+loopback, the bundled clip scaled down so that three fit on two cores; two of them speaking
+(the bundled speech, Opus through the relay) where the test is about sound."""
 
 from __future__ import annotations
 
@@ -10,12 +11,16 @@ from pathlib import Path
 
 import pytest
 
+from facewire.protocol.constants import AUDIO_RATE
 from facewire.protocol.sframe import RoomKey
+from facewire.receiver.audio import read_audio
 from facewire.relay import Relay, RelayConfig, free_port
 from tests.cli_call import Facewire, count_frames, kill_all, run_facewire
+from tests.voices import talking_clip, talking_voice, voice_match
 
 pytest.importorskip("nats")
 SMALL = ("--max-size", "320x240", "--no-sound")
+SPEAKING = ("--max-size", "320x240")
 
 
 @pytest.fixture
@@ -31,11 +36,13 @@ def key(tmp_path: Path) -> Path:
     return path
 
 
-def _join(relay: Relay, key: Path, name: str, *extra: str, tmp: Path) -> Facewire:
+def _join(
+    relay: Relay, key: Path, name: str, *extra: str, tmp: Path, size: tuple[str, ...] = SMALL
+) -> Facewire:
     return Facewire(
         "room", "--room", "standup", "--name", name, "--key", str(key),
         "--server", relay.config.client_url(), "--stats", str(tmp / f"{name}.json"),
-        *SMALL, *extra, name=name,
+        *size, *extra, name=name,
     )  # fmt: skip
 
 
@@ -84,6 +91,64 @@ def test_three_in_a_room_one_joining_late(relay: Relay, key: Path, tmp_path: Pat
     assert asked >= 1 and answered >= 1, (asked, answered)
     for other in ("alice", "bob"):
         assert count_frames(record / f"{other}.mp4") > 0
+
+
+@pytest.mark.timeout(400)
+def test_each_voice_is_heard_and_recorded_with_its_face(
+    relay: Relay, key: Path, tmp_path: Path
+) -> None:
+    """Alice and Bob speak (two clips, two voices); Carol only listens and records each. Each
+    recording carries that one's voice, not the other's, beside the same frames it was sent
+    with; everyone played everyone's sound (mixed into the device, or a null sink where there is
+    none, as on this machine)."""
+    voices = {"alice": talking_voice(), "bob": talking_voice(swapped=True)}
+    record = tmp_path / "carol-hears"
+    alice = bob = carol = None
+    try:
+        carol = _join(relay, key, "carol", "--receive-only", "--record-dir", str(record),
+                      tmp=tmp_path, size=())  # fmt: skip
+        carol.expect("receiving only")
+        speakers = []
+        for name, voice in voices.items():
+            clip = talking_clip(tmp_path / f"{name}-says.mp4", voice)
+            speakers.append(
+                _join(relay, key, name, "--input", str(clip), tmp=tmp_path, size=SPEAKING)
+            )
+        alice, bob = speakers
+        _expect_joined(carol, "alice", "bob")
+        for person in (alice, bob, carol):
+            assert person.wait(300) == 0, person.output()
+    finally:
+        kill_all(alice, bob, carol)
+    # Said once for the room, not once a peer (a machine with a device says nothing).
+    no_device = sum("no sound device" in line for line in carol.lines)
+    assert no_device <= 1, carol.output()
+    heard = _stats(tmp_path, "carol")["peers"]
+    matches = {}
+    for name, voice in voices.items():
+        (other,) = set(voices) - {name}
+        sound = heard[name]["sound"]
+        assert sound["played"] > 0, (name, sound)
+        assert (
+            sound["sink"] == "no sound device" if no_device else sound["sink"].endswith(", mixed")
+        ), (name, sound)
+        # The recording starts with the first frame Carol decoded: the voice from there on.
+        start = heard[name]["recorded_from"] * AUDIO_RATE // 30
+        recorded = read_audio(record / f"{name}.mp4")
+        own, lag_ms = voice_match(recorded, voice[start:])
+        others, _ = voice_match(recorded, voices[other][start:])
+        matches[name] = (round(own, 2), lag_ms, round(others, 2))
+    print("each recording: (its own voice, at ms, the other's voice):", matches)
+    for own, lag_ms, others in matches.values():
+        # Not the two-party test's 0.9 and 20 ms: on this loaded machine the senders fall
+        # behind (6-9 fps) and send their sound in bursts, and what came too late to be played
+        # is not in the recording either (0.69-0.83 measured, at +5 to +20 ms; the two-party
+        # test measured 0.51 at +30 ms on main at the same load). The two voices match at
+        # -0.26. 45 ms: where a voice ahead of its lips starts to show (ITU-R BT.1359).
+        assert own > 0.5 and abs(lag_ms) <= 45 and others < 0.2, matches
+    for name in voices:  # the speakers heard each other too
+        (other,) = set(voices) - {name}
+        assert _stats(tmp_path, name)["peers"][other]["sound"]["played"] > 0
 
 
 @pytest.mark.timeout(400)

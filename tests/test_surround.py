@@ -299,3 +299,61 @@ def test_a_body_moving_with_the_camera_is_the_camera_alone() -> None:
     assert np.array_equal(
         warp.warp(o + [6.0, -4.0], camera, body=camera), warp.warp(o + [6.0, -4.0], camera)
     )
+
+
+def test_a_face_in_a_large_frame_is_warped_as_in_a_small_one_and_the_rest_is_the_frame() -> None:
+    # Only the head's reach is warped pixel by pixel: the same small frame with its edges
+    # repeated out to 1280x720 (on the spline's grid) warps as the small one does, and beyond
+    # the reach the large frame is the snapshot frame itself.
+    small = noise_image()
+    top, left = 176, 400
+    large = cv2.copyMakeBorder(
+        small, top, 720 - H - top, left, 1280 - W - left, cv2.BORDER_REPLICATE
+    )
+    o, move = outline(), np.array([9.0, -6.0])
+    want = SurroundWarp(small, o).warp(o + move)
+    got = SurroundWarp(large, o + [left, top]).warp(o + [left, top] + move)
+    inner = np.s_[top + 40 : top + H - 40, left + 40 : left + W - 40]
+    assert np.abs(got[inner].astype(int) - want[40:-40, 40:-40]).max() <= 1
+    assert np.abs(got[inner].astype(int) - large[inner]).max() > 50  # the head did move
+    far = np.ones(large.shape[:2], bool)
+    far[top - 40 : top + H + 40, left - 40 : left + W + 40] = False
+    assert np.array_equal(got[far], large[far])
+
+
+def test_a_camera_that_moves_again_moves_the_picture_again() -> None:
+    # The scene moved by the camera is kept while the camera stays: a frame after the camera
+    # moved on (or back) is what a fresh warp draws for it, never the last frame's scene.
+    image, person = person_scene()
+    warp = SurroundWarp(image, outline(), person)
+    now = outline() + [5.0, 2.0]
+    cameras = [np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]]) for dx, dy in
+               [(4.0, -2.0), (4.0, -2.0), (-3.0, 5.0), (4.0, -2.0), (0.0, 0.0)]]  # fmt: skip
+    for camera in cameras:
+        want = SurroundWarp(image, outline(), person).warp(now, camera)
+        assert np.array_equal(warp.warp(now, camera), want)
+        part = warp.warp(now, camera, (10, 20, 300, 250)).astype(int)
+        assert np.abs(part - want[20:250, 10:300]).max() <= 1  # as any box (above)
+
+
+def test_a_body_that_moves_again_moves_the_person_again() -> None:
+    # The person moved by the body over the scene moved by the camera is kept while both
+    # stay: a frame after either moved on (or back) is what a fresh warp draws for it.
+    image, person = person_scene()
+    warp = SurroundWarp(image, outline(), person)
+    now = outline() + [5.0, 2.0]
+
+    def shift(dx: float, dy: float) -> np.ndarray:
+        return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+    still, panned, leaned, other = np.eye(3), shift(4.0, -2.0), shift(3.0, 4.0), shift(-2.0, 6.0)
+    moves = [(still, leaned), (still, leaned), (panned, leaned), (panned, other), (still, still),
+             (still, leaned)]  # fmt: skip
+    for camera, body in moves:
+        want = SurroundWarp(image, outline(), person).warp(now, camera, body=body)
+        assert np.array_equal(warp.warp(now, camera, body=body), want)
+        part = warp.warp(now, camera, (10, 20, 300, 250), body).astype(int)
+        assert np.abs(part - want[20:250, 10:300]).max() <= 1
+    # A moved body shows: beyond the head's reach the person is not where it was.
+    moved = warp.warp(now, body=shift(0.0, 12.0)).astype(int)
+    assert np.abs(moved - warp.warp(now).astype(int)).max() > 50

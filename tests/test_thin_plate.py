@@ -24,3 +24,13 @@ def test_an_affine_map_is_reproduced_everywhere() -> None:
     spline = ThinPlate(controls, controls @ matrix.T + shift, 1.0)
     points = rng.uniform(-50, 150, (200, 2))
     assert np.allclose(spline(points), points @ matrix.T + shift, atol=1e-6)
+
+
+def test_many_points_at_once_are_each_where_the_spline_puts_them_alone() -> None:
+    # Points are evaluated in blocks (models/thin_plate.py): a frame's grid has thousands.
+    rng = np.random.default_rng(2)
+    controls = rng.uniform(0, 1280, (90, 2))
+    spline = ThinPlate(controls, rng.normal(0, 3, (90, 2)), 1e-3)
+    points = rng.uniform(0, 1280, (1000, 2))
+    alone = np.vstack([spline(p[None]) for p in points])
+    assert np.allclose(spline(points), alone, rtol=0.0, atol=1e-9)

@@ -1,0 +1,70 @@
+"""Clips that speak, and how a recording's voice is told apart (tests of sound in calls)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from facewire.protocol.constants import AUDIO_RATE
+from facewire.receiver.audio import mux_audio
+from facewire.sender.audio import demo_speech_path, open_track
+from facewire.sender.capture import demo_clip_path
+
+#: The bundled clip's talking part: its frames from here on, its speech from 6 s on.
+TALKING_FROM_FRAME = 180
+TALKING_FROM_S = 6
+
+
+def demo_speech() -> np.ndarray:
+    """The bundled clip's speech, 48 kHz mono int16 (10 s, speaking from 6 s on)."""
+    track = open_track(demo_speech_path())
+    assert track is not None
+    speech = track.read(10 * AUDIO_RATE)
+    assert speech is not None
+    return speech
+
+
+def talking_voice(swapped: bool = False) -> np.ndarray:
+    """The bundled clip's 4 s of speech; ``swapped``: its two halves the other way round, a
+    second voice whose loudness follows another course."""
+    voice = demo_speech()[TALKING_FROM_S * AUDIO_RATE :]
+    if swapped:
+        half = len(voice) // 2
+        voice = np.concatenate([voice[half:], voice[:half]])
+    return voice
+
+
+def talking_clip(path: Path, voice: np.ndarray) -> Path:
+    """The bundled clip's talking part (frames 180-299) with ``voice`` as the file's own
+    audio track: a clip that speaks from its first frame, as a call often does."""
+    import cv2
+
+    from facewire.sender.capture import VideoSource
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (640, 480))
+    for frame in VideoSource(demo_clip_path()).frames():
+        if frame.index >= TALKING_FROM_FRAME:
+            writer.write(frame.image)
+    writer.release()
+    mux_audio(path, voice)
+    return path
+
+
+def voice_match(recorded: np.ndarray, speech: np.ndarray) -> tuple[float, float]:
+    """(correlation, lag in ms) of the loudness of ``recorded`` against ``speech``, per 5 ms:
+    two codecs (Opus, then the recording's AAC) keep the voice, not its waveform's phase."""
+    step = AUDIO_RATE // 200
+
+    def loudness(pcm: np.ndarray) -> np.ndarray:
+        n = len(pcm) // step * step
+        return np.sqrt((pcm[:n].astype(float).reshape(-1, step) ** 2).mean(axis=1))
+
+    a, b = loudness(recorded), loudness(speech)
+    n = min(len(a), len(b))
+    best = (-1.0, 0.0)
+    for lag in range(-60, 61):  # +-300 ms
+        x = a[max(lag, 0) : n + min(lag, 0)]
+        y = b[max(-lag, 0) : n - max(lag, 0)]
+        best = max(best, (float(np.corrcoef(x, y)[0, 1]), lag * 5.0))
+    return best
