@@ -12,8 +12,9 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
   a full queue drops; loss on a link with no queue is the link's own, which sending less does
   not cure; loss counted over the last LOSS_WINDOW_S, so one lost datagram among the few of a
   report interval is not taken for 20%): the rate falls to DECREASE times what the receiver
-  got over the last RATE_WINDOW_S (GCC's decrease), at most once per DECREASE_HOLD_S, so
-  one queue is not paid for twice.
+  got over the last RATE_WINDOW_S (GCC's decrease; in the call's first second, before there
+  is such a window, DECREASE times the estimate), at most once per DECREASE_HOLD_S, so one
+  queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
   accelerated ramp-up), but never past CEILING_FACTOR times what the receiver got plus a
@@ -182,16 +183,22 @@ class RateController:
         latest = ((received_bytes - prev[3]) & 0xFFFFFFFF) + IP_UDP_BYTES * got
         self._latest_bps = latest * 8.0 / span
         self.last = Estimate(queue_ms, window_loss, received_bps)
-        self._update(now, queue_ms, window_loss, received_bps)
+        # Over less than RATE_WINDOW_S (the call's first second) what got through says little
+        # of what the link carries: a cut then is taken from the estimate, not from it.
+        measured = arrival_s - since >= RATE_WINDOW_S
+        self._update(now, queue_ms, window_loss, received_bps, measured)
 
-    def _update(self, now: float, queue_ms: float, loss: float, received_bps: float) -> None:
+    def _update(
+        self, now: float, queue_ms: float, loss: float, received_bps: float, measured: bool
+    ) -> None:
         dt = 0.0 if self._last_update is None else min(1.0, now - self._last_update)
         self._last_update = now
         if queue_ms > QUEUE_HIGH_MS or (loss > LOSS_HIGH and queue_ms > QUEUE_LOW_MS):
             if now - self._last_decrease >= DECREASE_HOLD_S:
                 self._last_decrease = now
                 self.decreases += 1
-                self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * received_bps))
+                got = received_bps if measured else self.rate_bps
+                self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * got))
                 logger.debug(
                     "rate down to %.1f kbit/s (queue %.0f ms, loss %.0f%%)",
                     self.rate_bps / 1000, queue_ms, loss * 100,

@@ -295,3 +295,20 @@ def test_forgets_old_send_times() -> None:
     assert controller.last == RateController().last
     controller.on_report(100.0, 2999, 100_050, 1, 100)  # remembered
     assert controller.last.queue_ms == 0.0
+
+
+def test_a_queue_in_the_first_second_cuts_from_the_estimate() -> None:
+    """The call's first reports cover a few datagrams: what got through says little of what
+    the link carries. A queue then (the snapshot's draft still crossing on TCP) cut the rate
+    to its floor from those few (6 kbit/s), and it crawled back at 8% a second: the full
+    snapshot took 20 s at 24 kbit/s."""
+    controller = RateController()
+    for index, at in enumerate((T0, T0 + 0.2, T0 + 0.4)):
+        controller.on_sent(index, at)
+    controller.on_report(T0 + 0.1, 0, round((T0 + 0.05) * 1000), 1, SIZE)
+    # The third datagram came 100 ms behind the first one's delay: a queue.
+    controller.on_report(T0 + 0.6, 2, round((T0 + 0.55) * 1000), 3, 3 * SIZE)
+    assert controller.last.queue_ms == pytest.approx(100, abs=1)
+    assert controller.last.received_bps < MIN_RATE_BPS  # a few datagrams over half a second
+    assert controller.decreases == 1
+    assert controller.rate_bps == pytest.approx(DECREASE * START_RATE_BPS)
