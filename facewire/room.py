@@ -208,7 +208,13 @@ def run(args: argparse.Namespace) -> int:
                     if sending is not None and sending.endpoint is not None else None
                 ),
             )  # fmt: skip
-            link = RoomLink(servers, args.room, args.name, receiver.deliver, tell, tls)
+            link = RoomLink(
+                servers, args.room, args.name, receiver.deliver, tell, tls,
+                on_reconnected=lambda: (
+                    sending.endpoint.reconnected()
+                    if sending is not None and sending.endpoint is not None else None
+                ),
+            )  # fmt: skip
             link.start()
             if isinstance(key, SenderKeys):  # the boxes are in the bucket before any media
                 key.fetch = link.get_entry
@@ -225,7 +231,8 @@ def run(args: argparse.Namespace) -> int:
             while not stop():
                 sent = sending is None or sending.done.is_set()
                 came = any(f.sessions for f in receiver.figures.values())
-                if sent and not receiver.peers and (sending is not None or came):
+                alone = not receiver.peers and not receiver.joining
+                if sent and alone and (sending is not None or came):
                     break
                 receiver.run_once(TICK_S)
                 if link.lost:

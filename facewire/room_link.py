@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import random
 import ssl
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from typing import Any
+from urllib.parse import urlsplit
 
 from facewire.protocol import subjects
 from facewire.protocol.clock import now_us
@@ -28,8 +30,18 @@ CALL_TIMEOUT_S = 5.0
 SNAPSHOT_TIMEOUT_S = 1.0
 #: Reconnect quickly to another node of the cluster when the one in use dies.
 RECONNECT_WAIT_S = 0.25
-#: A cluster that has just started elects JetStream's leader before a bucket can be made.
+#: A node that dies with its process closes the connection, noticed at once; one that stops
+#: answering (a machine gone, a network cut, a process hung) is noticed by PINGs going
+#: unanswered: one every PING_S, the connection given up when the third is due with two still
+#: unanswered, 1.0-1.5 s after the node's last word (12 bytes a PING and its PONG, 2 a second).
+PING_S = 0.5
+MAX_UNANSWERED_PINGS = 2
+#: A cluster that has just started elects JetStream's leader before a bucket can be made, and
+#: one that lost the node leading the bucket elects another (4.2-4.6 s on loopback) before a
+#: write goes through: a write is tried again for this long, ...
 BUCKET_WAIT_S = 10.0
+#: ... each time waiting this long for the bucket's answer (it is a few ms when it comes).
+BUCKET_ATTEMPT_S = 1.0
 MAX_RECONNECT_ATTEMPTS = 120  # 30 s of trying, then the call ends
 
 
@@ -54,6 +66,19 @@ def _hidden(url: str) -> str:
     return f"{scheme}://{rest.rpartition('@')[2]}" if rest else url
 
 
+def _pool(servers: list[str]) -> tuple[list[str], str | None]:
+    """``servers`` in a random order (participants spread over a cluster's nodes) and, when
+    they all carry one token, the URLs without it and the token: nats-py gives it to every
+    node then, also to those the cluster tells of (their URLs have no token; with it in the
+    URLs they were tried and refused, an attempt each, when a node died)."""
+    order = random.sample(servers, len(servers))
+    parts = [urlsplit(s) for s in servers]
+    tokens = {p.username for p in parts}
+    if len(tokens) != 1 or None in tokens or any(p.password or not p.scheme for p in parts):
+        return order, None
+    return [_hidden(s) for s in order], tokens.pop()
+
+
 class RoomLink:
     def __init__(
         self,
@@ -63,6 +88,7 @@ class RoomLink:
         on_message: Callable[[str, bytes, int], None],
         notify: Callable[[str], None],
         tls: ssl.SSLContext | None = None,
+        on_reconnected: Callable[[], None] = lambda: None,
     ) -> None:
         self.servers = servers
         self.tls = tls  # None: the system's CAs, when a relay asks for TLS
@@ -70,6 +96,8 @@ class RoomLink:
         self.name = name
         self.on_message = on_message
         self.notify = notify
+        #: Called on the link's thread once it is connected again (to another node).
+        self.on_reconnected = on_reconnected
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="nats", daemon=True)
         self._nc: Any = None
@@ -112,7 +140,7 @@ class RoomLink:
 
     def put_entry(self, key: str, data: bytes) -> None:
         """Put ``data`` in the room's bucket under ``key`` (a snapshot, a sealed key box)."""
-        self._call(self._kv.put(key, data))
+        self._call(self._write(self._kv.put, key, data), BUCKET_WAIT_S + CALL_TIMEOUT_S)
 
     def get_snapshot(self, name: str) -> bytes | None:
         """``name``'s sealed snapshot; None when the bucket has none, or cannot say now (a
@@ -128,7 +156,7 @@ class RoomLink:
             return None
 
     def delete_snapshot(self) -> None:
-        self._call(self._kv.delete(self.name))
+        self._call(self._write(self._kv.delete, self.name), BUCKET_WAIT_S + CALL_TIMEOUT_S)
 
     @property
     def connected_url(self) -> str | None:
@@ -172,19 +200,25 @@ class RoomLink:
         async def reconnected() -> None:
             self.reconnects += 1
             self.notify(f"reconnected to the relay at {self.connected_url}")
+            self.on_reconnected()
 
+        servers, token = _pool(self.servers)
         try:
             # nats-py retries a first connection as it would a lost one: bound it.
             self._nc = await asyncio.wait_for(
                 nats.connect(
-                    self.servers,
+                    servers,
+                    token=token,
+                    # In our order: the node just lost is the last one tried again (one that
+                    # stopped answering takes connect_timeout to refuse).
+                    dont_randomize=True,
                     name=f"facewire {self.room}/{self.name}",
                     connect_timeout=2,
                     allow_reconnect=True,
                     reconnect_time_wait=RECONNECT_WAIT_S,
                     max_reconnect_attempts=MAX_RECONNECT_ATTEMPTS,
-                    ping_interval=2,
-                    max_outstanding_pings=2,
+                    ping_interval=PING_S,  # type: ignore[arg-type]  # nats-py sleeps it: a float
+                    max_outstanding_pings=MAX_UNANSWERED_PINGS,
                     no_echo=True,  # our own bundles do not come back to us
                     tls=self.tls,
                     error_cb=error,
@@ -212,7 +246,7 @@ class RoomLink:
         from nats.js.api import KeyValueConfig, StorageType
         from nats.js.errors import BadRequestError, BucketNotFoundError, ServiceUnavailableError
 
-        js = self._nc.jetstream()
+        js = self._nc.jetstream(timeout=BUCKET_ATTEMPT_S)
         nodes = {(u.hostname, u.port) for u in self._nc.servers}
         config = KeyValueConfig(
             bucket=subjects.bucket(self.room),
@@ -233,6 +267,23 @@ class RoomLink:
                 if asyncio.get_running_loop().time() > deadline:
                     raise
                 await asyncio.sleep(0.25)
+
+    async def _write(self, write: Callable[..., Awaitable[Any]], *args: Any) -> None:
+        """``write(*args)`` to the bucket, again while the cluster has no leader for it (a
+        node died; the others elect one) for up to BUCKET_WAIT_S."""
+        from nats.errors import TimeoutError as NatsTimeout
+        from nats.js.errors import NoStreamResponseError, ServiceUnavailableError
+
+        deadline = asyncio.get_running_loop().time() + BUCKET_WAIT_S
+        while True:
+            try:
+                await write(*args)
+                return
+            except (NatsTimeout, NoStreamResponseError, ServiceUnavailableError) as exc:
+                if asyncio.get_running_loop().time() > deadline:
+                    raise
+                logger.info("the bucket did not answer (%s): again", type(exc).__name__)
+                await asyncio.sleep(0.1)
 
     async def _deliver(self, msg: Any) -> None:
         self.on_message(msg.subject, msg.data, now_us())

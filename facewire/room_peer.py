@@ -4,8 +4,10 @@
 and a media bundle from someone new first fetches that one's snapshot from the room's
 bucket (the Clone pattern: subscribed first, then the state, then the updates), builds a
 :class:`Peer` (the two-party receiver's FaceDecoder, and its CallSound: facewire/room_sound.py)
-and asks that sender for a keyframe on its own control subject. A peer leaves on its Bye, or
-when nothing of it came for PEER_GONE_S; its recording then gets its voice.
+and asks that sender for a keyframe on its own control subject. That is done on a thread of
+the newcomer's own (facewire/room_join.py), so the others' pictures go on meanwhile. A peer
+leaves on its Bye, or when nothing of it came for PEER_GONE_S; its recording then gets its
+voice.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from facewire.protocol.packets import (
 )
 from facewire.protocol.sender_keys import KeyUnavailable, SenderKeys
 from facewire.protocol.sframe import Header, Opener, RoomKey, Sealer, SFrameError, kid_is_of
+from facewire.room_join import Joining
 
 if TYPE_CHECKING:
     from facewire.room_sound import RoomSound
@@ -58,9 +61,15 @@ LOCKED_RETRY_S = 5.0
 SNAPSHOT_RETRY_S = 0.5
 #: The longest gap in a recording filled by holding the last picture (frames).
 MAX_HOLD_FRAMES = 60
+#: A wait this long between two decoded frames of a peer is kept in its figures (a freeze;
+#: a still face sends a frame a second, a moving one 15-30), at most MAX_FREEZES of them.
+FREEZE_MS = 200.0
+MAX_FREEZES = 1000
 #: Pictures kept to tell the sound how long after capture a face is shown (it uses the last 30).
 SHOWN_KEPT = 60
 SNAPSHOT, MEDIA, CONTROL = b"s", b"m", b"c"
+#: Put in the inbox to wake the receiving loop (a newcomer is ready).
+_WAKE = ("", b"", 0)
 
 
 def _summary(values: list[float]) -> dict[str, float]:
@@ -146,13 +155,15 @@ class Peer:
             if figures.last_frame_us is not None:
                 gap_ms = (now - figures.last_frame_us) / 1000.0
                 figures.max_gap_ms = max(figures.max_gap_ms, gap_ms)
+                if gap_ms >= FREEZE_MS and len(figures.freezes) < MAX_FREEZES:
+                    figures.freezes.append((figures.last_frame_us, round(gap_ms, 1)))
             figures.last_frame_us = now
             # The recording's frame this picture becomes places the voice in the recording.
             index = values.seq if self.recorder is None else self._hold(values.seq)
             if self.painter is not None:
                 picture = self._record(values)
-                if self.gallery is not None:
-                    self.gallery.show(self.name, picture, latency_ms, 0)
+                if self.gallery is not None:  # it waits there for its voice
+                    self.gallery.show(self.name, picture, values.capture_us)
             if self.audio is not None:
                 self.shown.append((now_us(), values.capture_us))
                 del self.shown[:-SHOWN_KEPT]
@@ -226,6 +237,7 @@ class PeerFigures:
         self.left: str | None = None
         self.last_frame_us: int | None = None
         self.max_gap_ms = 0.0  # the longest wait between two decoded frames (a freeze)
+        self.freezes: list[tuple[int, float]] = []  # (from µs, ms) of waits over FREEZE_MS
         self.sound: dict[str, Any] = {}  # receiver/audio.py's AudioReport, sessions added
         self.recorded_from: int | None = None  # the sender's frame its recording starts with
 
@@ -251,6 +263,7 @@ class PeerFigures:
             "messages": self.messages,
             "bytes": {"sealed": self.sealed_bytes, "nats": self.nats_bytes},
             "max_gap_ms": round(self.max_gap_ms, 1),
+            "freezes": self.freezes,
             "sessions": self.sessions,
             "keyframe_requests": self.keyframe_requests,
             "chain_breaks": self.chain_breaks,
@@ -291,6 +304,8 @@ class RoomReceiver:
         self.inbox: queue.Queue[tuple[str, bytes, int]] = queue.Queue()
         self.opener = Opener()
         self.peers: dict[str, Peer] = {}
+        self.joining: dict[str, Joining] = {}  # newcomers whose decoders are being built
+        self._building = threading.Lock()  # one decoder built at a time (GL set up once)
         self.figures: dict[str, PeerFigures] = {}
         self.locked: dict[str, float] = {}  # name -> when its messages last failed to open
         self.asked: dict[str, float] = {}  # name -> when its snapshot was last read
@@ -304,17 +319,25 @@ class RoomReceiver:
         self.inbox.put((subject, data, arrival_us))
 
     def run_once(self, timeout_s: float) -> None:
-        """Handle what came within ``timeout_s``, then drop peers gone silent."""
+        """Handle what came within ``timeout_s`` (less when a picture of the gallery is due
+        sooner), then drop peers gone silent."""
+        if self.gallery is not None:
+            timeout_s = min(timeout_s, self.gallery.wait_s())
         try:
             item: tuple[str, bytes, int] | None = self.inbox.get(timeout=timeout_s)
         except queue.Empty:
             item = None
         while item is not None:
-            self._handle(*item)
+            if item is not _WAKE:
+                self._handle(*item)
             try:
                 item = self.inbox.get_nowait()
             except queue.Empty:
                 item = None
+        for joining in [j for j in self.joining.values() if j.done.is_set()]:
+            self._joined(joining)
+        if self.gallery is not None:
+            self.gallery.tick()
         now = time.monotonic()
         for peer in list(self.peers.values()):
             if now - peer.last_heard > PEER_GONE_S:
@@ -333,7 +356,7 @@ class RoomReceiver:
             self._control(sender, data)
             return
         figures = self.figures.setdefault(sender, PeerFigures())
-        peer = self._peer(sender, data)
+        peer = self._peer(subject, sender, data, arrival_us)
         if peer is None:
             return
         try:
@@ -359,9 +382,10 @@ class RoomReceiver:
         if want_keyframe or peer.chain_broken:
             self._ask_keyframe(peer, figures)
 
-    def _peer(self, sender: str, data: bytes) -> Peer | None:
-        """The peer ``data`` comes from, built from its snapshot when it is new (or a new run
-        of it: another KID); None while its messages cannot be opened."""
+    def _peer(self, subject: str, sender: str, data: bytes, arrival_us: int) -> Peer | None:
+        """The peer ``data`` comes from; None while its messages cannot be opened, or while
+        it is being joined (a new one, or a new run of one: another KID), its messages kept
+        for when it is ready."""
         try:
             kid = Header.parse(data)[0].kid
         except SFrameError as exc:
@@ -370,6 +394,11 @@ class RoomReceiver:
         peer = self.peers.get(sender)
         if peer is not None and peer.kid == kid:
             return peer
+        joining = self.joining.get(sender)
+        if joining is not None:
+            if joining.kid == kid:
+                joining.backlog.append((subject, data, arrival_us))
+            return None
         if not kid_is_of(kid, sender):
             self._rejected(sender, SFrameError(f"KID {kid:#x} is not {sender}'s"))
             return None
@@ -388,44 +417,79 @@ class RoomReceiver:
         if peer is not None:
             self._drop(peer, "restarted")
         self.opener.add_key(kid, base_key)
-        sealed = self.get_snapshot(sender)
-        if sealed is None:
-            logger.info("%s sends but has no snapshot in the room's bucket yet", sender)
-            return None
-        try:
-            snapshot = decode(self.opener.open(sealed, self.key.metadata(sender, SNAPSHOT), False))
-            if not isinstance(snapshot, Snapshot):
-                raise PacketError(f"expected a Snapshot, got {type(snapshot).__name__}")
-        except SFrameError as exc:
-            self.locked[sender] = time.monotonic()
-            self._rejected(sender, exc)
-            return None
-        except PacketError as exc:
-            self.locked[sender] = time.monotonic()
-            logger.info("%s's snapshot: %s", sender, exc)
-            return None
         record = None
         if self.record_dir is not None:
             # A later session (the sender restarted) gets a file of its own, NAME.2.mp4 and
             # on: the one before may still be getting its sound. Names have no dots.
             again = self.figures[sender].sessions
             record = self.record_dir / (f"{sender}.{again + 1}.mp4" if again else f"{sender}.mp4")
-        try:
-            peer = Peer(sender, kid, snapshot, record, self.gallery, self.sound)
-        except ValueError as exc:  # a snapshot this decoder cannot take (another rig)
-            self.locked[sender] = time.monotonic()
-            self.notify(f"{sender} cannot be shown: {exc}")
+        joining = Joining(sender, kid, lambda j: self._build(j, record), self._wake)
+        joining.backlog.append((subject, data, arrival_us))
+        self.joining[sender] = joining
+        return None
+
+    def _wake(self) -> None:
+        self.inbox.put(_WAKE)
+
+    def _build(self, joining: Joining, record: Path | None) -> Peer | None:
+        """On ``joining``'s thread: read and open its snapshot, ask for the keyframe (it comes
+        while the decoder is built), build the peer; None when the bucket has no snapshot."""
+        name = joining.name
+        sealed = self.get_snapshot(name)
+        if sealed is None:
             return None
-        if self.gallery is not None:
-            self.gallery.joined(sender)
-        self.peers[sender] = peer
-        self.figures[sender].sessions += 1
-        self.locked.pop(sender, None)
-        self.notify(
-            f"{sender} joined: {snapshot.width}x{snapshot.height} at {snapshot.fps:g} fps"
-            + (f", recording to {record}" if record is not None else "")
-        )
+        snapshot = decode(self.opener.open(sealed, self.key.metadata(name, SNAPSHOT), False))
+        if not isinstance(snapshot, Snapshot):
+            raise PacketError(f"expected a Snapshot, got {type(snapshot).__name__}")
+        self._request_keyframe(name, snapshot.seq)
+        joining.asked_keyframe = True
+        with self._building:
+            peer = Peer(name, joining.kid, snapshot, record, self.gallery, self.sound)
+            peer.decoder.release_context()  # it draws on the receiving thread
         return peer
+
+    def _joined(self, joining: Joining) -> None:
+        """``joining`` is done: the peer takes its place and its messages so far are decoded,
+        or what went wrong is said (its messages are dropped; it is tried again later)."""
+        name = joining.name
+        del self.joining[name]
+        exc = joining.error
+        if isinstance(exc, SFrameError):
+            self.locked[name] = time.monotonic()
+            self._rejected(name, exc)
+            return
+        if isinstance(exc, PacketError):
+            self.locked[name] = time.monotonic()
+            logger.info("%s's snapshot: %s", name, exc)
+            return
+        if isinstance(exc, ValueError):  # a snapshot this decoder cannot take (another rig)
+            self.locked[name] = time.monotonic()
+            self.notify(f"{name} cannot be shown: {exc}")
+            return
+        if exc is not None:
+            raise exc
+        peer = joining.peer
+        if peer is None:
+            logger.info("%s sends but has no snapshot in the room's bucket yet", name)
+            return
+        figures = self.figures[name]
+        if joining.asked_keyframe:
+            figures.keyframe_requests += 1
+            peer.last_request = time.monotonic()  # its keyframe is on its way
+        if self.gallery is not None and peer.audio is not None:
+            self.gallery.joined(name, peer.audio.delay_us)  # each picture with its voice
+        elif self.gallery is not None:
+            self.gallery.joined(name)
+        self.peers[name] = peer
+        figures.sessions += 1
+        self.locked.pop(name, None)
+        snapshot = peer.snapshot
+        self.notify(
+            f"{name} joined: {snapshot.width}x{snapshot.height} at {snapshot.fps:g} fps"
+            + (f", recording to {peer.record}" if peer.record is not None else "")
+        )
+        for item in joining.backlog:
+            self._handle(*item)
 
     def _packets(self, peer: Peer, bundle: bytes, figures: PeerFigures) -> list[object]:
         out: list[object] = []
@@ -460,11 +524,14 @@ class RoomReceiver:
             return
         peer.last_request = now
         figures.keyframe_requests += 1
-        seq = peer.next_seq or peer.snapshot.seq
+        self._request_keyframe(peer.name, peer.next_seq or peer.snapshot.seq)
+
+    def _request_keyframe(self, name: str, seq: int) -> None:
+        """Ask ``name`` for a keyframe after its frame ``seq`` (any thread)."""
         request = bytes(KeyframeRequest(min(seq, 2**32 - 1)))
-        metadata = self.key.metadata(self.name, CONTROL + peer.name.encode())
+        metadata = self.key.metadata(self.name, CONTROL + name.encode())
         sealed = self.sealer.seal(request, metadata)
-        self.publish(subjects.control(self.key.room, peer.name, self.name), sealed)
+        self.publish(subjects.control(self.key.room, name, self.name), sealed)
 
     def _control(self, sender: str, data: bytes) -> None:
         try:
@@ -522,7 +589,14 @@ class RoomReceiver:
 
     def close(self) -> None:
         """Drop who is left and wait until every recording is finished (what went wrong
-        finishing one is in :attr:`finish_errors`)."""
+        finishing one is in :attr:`finish_errors`); newcomers still being joined are not
+        shown."""
+        for joining in self.joining.values():
+            try:
+                joining.discard()
+            except Exception:  # leaving anyway
+                logger.debug("discarding %s", joining.name, exc_info=True)
+        self.joining.clear()
         for peer in list(self.peers.values()):
             self._drop(peer, "this participant left")
         for finishing in self.finishing:

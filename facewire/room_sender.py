@@ -137,6 +137,12 @@ class RoomSender:
         """A receiver asked (called from the receiving side's thread)."""
         self._requests.append(request)
 
+    def reconnected(self) -> None:
+        """The link is back, through another node (called from its thread): what it sent to
+        the node that died may be lost, so the next frame is a keyframe without waiting for
+        a receiver to find its chain broken and ask."""
+        self._requests.append(KeyframeRequest(min(self._last_seq, 2**32 - 1)))
+
     def poll(self, timeout_ms: int = 0) -> list[Packet]:
         out: list[Packet] = []
         while self._requests:

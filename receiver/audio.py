@@ -434,6 +434,19 @@ class AudioPlayout:
             del self._transit[:-WINDOW]
             self._lock.notify()
 
+    def delay_us(self) -> int | None:
+        """How long after capture the sound is heard now, µs: the playing run's latency, or
+        between runs the one a run starting now would take; None before any packet came (a
+        sender without sound). A picture shown this long after its capture is seen with the
+        voice it was sent with."""
+        with self._lock:
+            if self._next is not None:
+                _, base_capture, base_due = self._base
+                return base_due - base_capture
+            if not self._transit:
+                return None
+            return self._latency()
+
     # --- play side (its own thread) --------------------------------------------------------
 
     def _usual_transit(self) -> int | None:
@@ -718,6 +731,10 @@ class CallSound:
             self._notify(self._no_device)
             self._no_device = None
         self.playout.push(packet, arrival_us)
+
+    def delay_us(self) -> int | None:
+        """:meth:`AudioPlayout.delay_us`: when, after capture, a picture meets its voice."""
+        return self.playout.delay_us()
 
     def play_out(self) -> None:
         """Play what is buffered (the sender said bye) before :meth:`finish`."""

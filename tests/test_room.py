@@ -12,9 +12,11 @@ from pathlib import Path
 import pytest
 
 from facewire.protocol.constants import AUDIO_RATE
-from facewire.protocol.sframe import RoomKey
+from facewire.protocol.packets import KeyframeRequest
+from facewire.protocol.sframe import RoomKey, Sealer, new_kid
 from facewire.receiver.audio import read_audio
 from facewire.relay import Relay, RelayConfig, free_port
+from facewire.room_sender import RoomSender
 from tests.cli_call import Facewire, count_frames, kill_all, run_facewire
 from tests.voices import talking_clip, talking_voice, voice_match
 
@@ -201,3 +203,15 @@ def test_relay_down_and_bad_input_are_one_line(key: Path, tmp_path: Path) -> Non
     assert done.stderr == f"facewire: error: {other} is room other's key, not room standup's\n"
     done = run_facewire("room", "--room", "stand up", "--name", "a", "--key", str(key))
     assert done.returncode == 1 and "room name 'stand up'" in done.stderr
+
+
+def test_a_sender_back_through_another_node_sends_a_keyframe_unasked() -> None:
+    # What went to the node that died may be lost: the sender's loop is asked for a keyframe
+    # by the link's reconnection itself, not only later by a receiver whose chain broke.
+    key = RoomKey.generate("standup")
+    sealer = Sealer(key.base_key("alice"), new_kid("alice"))
+    sender = RoomSender(None, key, "alice", sealer, 30.0, 2000.0)  # type: ignore[arg-type]
+    assert sender.poll() == []
+    sender.reconnected()
+    assert sender.poll() == [KeyframeRequest(0)]
+    assert sender.poll() == []

@@ -1,0 +1,60 @@
+"""A newcomer to a room, joined on a thread of its own (facewire/room_peer.py)."""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from facewire.room_peer import Peer
+
+#: Messages kept of a peer whose decoder is being built, decoded once it is (10 s and more of
+#: a stream; beyond, the oldest are dropped and the keyframe asked for starts the chain).
+JOIN_BACKLOG = 512
+
+
+class Joining:
+    """A newcomer being joined on a thread of its own: its snapshot read from the room's
+    bucket and opened, a keyframe asked for, its decoder built (``build``, which returns
+    None when the bucket has no snapshot of it yet). Building a decoder takes 0.3 s on a quiet
+    machine and over a second on a loaded one (the renderer's shaders, the wire deformer);
+    done on the receiving loop, everyone else's pictures froze that long whenever someone
+    joined. The newcomer's messages wait in :attr:`backlog` until it is ready; ``ready`` is
+    called (on the joining thread) when it is, or when it failed (:attr:`error`)."""
+
+    def __init__(
+        self,
+        name: str,
+        kid: int,
+        build: Callable[[Joining], Peer | None],
+        ready: Callable[[], None],
+    ) -> None:
+        self.name = name
+        self.kid = kid
+        self.backlog: deque[tuple[str, bytes, int]] = deque(maxlen=JOIN_BACKLOG)
+        self.peer: Peer | None = None
+        self.error: Exception | None = None
+        self.asked_keyframe = False  # set by ``build`` once its request is out
+        self.done = threading.Event()
+        self._build = build
+        self._ready = ready
+        self.thread = threading.Thread(target=self._run, name=f"join-{name}", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.peer = self._build(self)
+        except Exception as exc:  # the receiving loop says it (or raises it)
+            self.error = exc
+        finally:
+            self.done.set()
+            self._ready()
+
+    def discard(self) -> None:
+        """Wait for the build and close what it made, unused (the participant is leaving)."""
+        self.thread.join()
+        if self.peer is not None:
+            self.peer.close()
+            self.peer.finish(play_out=False)
