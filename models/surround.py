@@ -42,8 +42,9 @@ with it instead of the camera, and so does the person layer beyond the head's re
 the body moved away the painted-out scene shows.
 
 The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
-per frame with its centres at the current control points, evaluated on a coarse grid and
-interpolated to full size for ``cv2.remap``.
+per frame with its centres at the current control points (of two that would fold it, a ring's
+point following the head carried onto one held still, the less important left out), evaluated
+on a coarse grid and interpolated to full size for ``cv2.remap``.
 """
 
 from __future__ import annotations
@@ -71,6 +72,10 @@ FADE = 1.3
 GRID_STEP = 16
 #: Tikhonov regulariser of the spline (pixels^2): keeps nearly coincident controls stable.
 SMOOTHING = 1e-3
+#: Of two controls closer than this many times the difference of their displacements, the
+#: less important one is left out: where the difference reaches the distance the spline folds
+#: (output pixels on both sides show one snapshot pixel, and what lay between is torn open).
+UNFOLD = 1.0
 #: Where the segmentation's probability is above this, the pixel is the person's. Low: a
 #: hat or hair half taken for scene tears when the head moves.
 PERSON_THRESHOLD = 0.2
@@ -161,6 +166,12 @@ class SurroundWarp:
             self._still_follow = np.clip(
                 (mouth - self._still[:, 1]) / max(mouth - eyes, 1e-6), 0.0, 1.0
             )
+        # Which controls give way when two would fold the warp: the outline first, then the
+        # head ring, then the still ring, its points that follow the head before those held.
+        still_first = np.argsort(-self._still_follow, kind="stable")
+        n = len(outline)
+        self._rank = np.empty(2 * n + len(self._still), int)
+        self._rank[np.r_[np.arange(2 * n), 2 * n + still_first]] = np.arange(len(self._rank))
         # Grid nodes where cv2.resize by GRID_STEP samples them ((j + 0.5) * step - 0.5), so
         # resizing the coarse map is exact bilinear interpolation between nodes.
         nx, ny = -(-self.width // GRID_STEP), -(-self.height // GRID_STEP)
@@ -284,7 +295,8 @@ class SurroundWarp:
         reached = reach > 0
         if reached.any():
             residual = then - (now if back is None else _apply(back, now))
-            spline = ThinPlate(now, residual, SMOOTHING)
+            keep = unfolded(now, residual, self._rank)
+            spline = ThinPlate(now[keep], residual[keep], SMOOTHING)
             shift[reached] += reach[reached, None] * spline(grid[reached])
         # The box's corner in the image remapped rides on the displacement: interpolation
         # keeps a constant as it is.
@@ -432,6 +444,25 @@ def _paint_out(image: np.ndarray, region: np.ndarray) -> np.ndarray:
     out = image.copy()
     out[region] = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)[region]
     return out
+
+
+def unfolded(points: np.ndarray, shifts: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of the controls ``points`` (n, 2), pixels, with displacements
+    ``shifts`` (n, 2) to keep so that no two lie closer than ``UNFOLD`` times the difference
+    of their displacements; of two that do, the one of higher ``rank`` (n,) goes.
+
+    A head tilting onto its shoulder carries a control that follows it next to one held
+    still: there the displacement changes by more than the distance, and the spline folds the
+    snapshot over itself (on Claire's shoulder, a blob of the wall behind)."""
+    gap = np.hypot(*(points[:, None] - points[None]).transpose(2, 0, 1))
+    step = np.hypot(*(shifts[:, None] - shifts[None]).transpose(2, 0, 1))
+    clash = gap < UNFOLD * step
+    keep = np.ones(len(points), bool)
+    order = np.argsort(rank)
+    for i in order[clash.any(1)[order]]:
+        if keep[i]:
+            keep[clash[i] & (rank > rank[i])] = False
+    return keep
 
 
 def reach_weight(

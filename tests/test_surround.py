@@ -357,3 +357,35 @@ def test_a_body_that_moves_again_moves_the_person_again() -> None:
     # A moved body shows: beyond the head's reach the person is not where it was.
     moved = warp.warp(now, body=shift(0.0, 12.0)).astype(int)
     assert np.abs(moved - warp.warp(now).astype(int)).max() > 50
+
+
+def test_a_head_following_control_carried_onto_a_held_one_does_not_fold_the_warp() -> None:
+    """The head drops until a point of the still ring that follows it (beside the eyes) lands
+    1 px from its neighbour held with the shoulders: the two need displacements 27 px apart.
+    A spline through both folds (on Claire's shoulder, a blob of the wall behind; here pixels
+    from 90 px away): no output pixel may show a snapshot pixel from much further away than
+    the head moved, and the map stays one-to-one (its Jacobian positive) all over the frame.
+    The hair still follows."""
+    image, person = person_scene()
+    o = outline(k=72)
+    warp = SurroundWarp(image, o, person)
+    k = len(o)
+    moved, then = warp.controls(o + [0.0, 1.0])
+    follows = (moved - then)[2 * k :, 1] > 0.99
+    held = (moved - then)[2 * k :, 1] < 0.01
+    ring = then[2 * k :]
+    # The following point nearest a held one, and the head's shift that lands it next to it.
+    gaps = np.hypot(*(ring[follows][:, None] - ring[held][None]).transpose(2, 0, 1))
+    i, j = np.unravel_index(np.argmin(gaps), gaps.shape)
+    shift = ring[held][j] + [1.0, 0.0] - ring[follows][i]
+    assert np.hypot(*shift) > 25.0
+    map_x, map_y = warp.source_map(o + shift)
+    xs, ys = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    assert np.hypot(map_x - xs, map_y - ys).max() <= 1.5 * np.hypot(*shift)
+    dxx, dxy = np.gradient(map_x, axis=1), np.gradient(map_x, axis=0)
+    dyx, dyy = np.gradient(map_y, axis=1), np.gradient(map_y, axis=0)
+    assert (dxx * dyy - dxy * dyx).min() > 0.0
+    centre = o.mean(0)
+    for q in (centre + 1.3 * (o - centre))[[54, 48, 60]]:  # hair above and beside
+        x, y = np.round(q + shift).astype(int)
+        assert np.allclose([map_x[y, x], map_y[y, x]], q, atol=3.0), q
