@@ -454,9 +454,9 @@ def unfolded(points: np.ndarray, shifts: np.ndarray, rank: np.ndarray) -> np.nda
     A head tilting onto its shoulder carries a control that follows it next to one held
     still: there the displacement changes by more than the distance, and the spline folds the
     snapshot over itself (on Claire's shoulder, a blob of the wall behind)."""
-    gap = np.hypot(*(points[:, None] - points[None]).transpose(2, 0, 1))
-    step = np.hypot(*(shifts[:, None] - shifts[None]).transpose(2, 0, 1))
-    clash = gap < UNFOLD * step
+    gap = points[:, None] - points[None]
+    step = shifts[:, None] - shifts[None]
+    clash = (gap * gap).sum(2) < UNFOLD**2 * (step * step).sum(2)
     keep = np.ones(len(points), bool)
     order = np.argsort(rank)
     for i in order[clash.any(1)[order]]:
