@@ -62,13 +62,13 @@ def main() -> None:
         t0 = time.perf_counter()
         sent = encoder.encode(f)
         data = b"" if sent is None else bytes(sent)  # None: nothing changed, nothing sent
-        patches = [bytes(p) for p in encoder.take_patches()]  # REM patches of this frame
+        patches = [bytes(p) for p in encoder.take_patches()]  # REM patches and refreshes
         send.append(time.perf_counter() - t0)
         sizes.append(len(data))
         rem_sizes.append(sum(len(p) for p in patches))
         t0 = time.perf_counter()
         for patch in patches:
-            decoder.add_patch(decode(patch))  # type: ignore[arg-type]
+            decoder.offer(decode(patch))
         if data:
             shown = decoder.decode(decode(data))  # type: ignore[arg-type]
         assert shown is not None

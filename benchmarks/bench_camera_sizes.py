@@ -13,8 +13,9 @@ of the whole process (llvmpipe's threads count) and as wall time:
   1920x1080 (padded at the sides): the face grows with the frame, as it does in a camera.
 
 Sender stages: tracking (landmarks and the eye model), synthesis, fit (pose, wires), camera
-motion, edge measure, REM patches. Receiver stages: surround warp, render (drawing and
-compositing), readback, edge correct, recording (the MP4 encoder, here on this thread).
+motion, body motion, edge measure, REM patches, refreshes (what the model misses). Receiver
+stages: surround warp, refreshes shown, render (drawing and compositing), readback, edge
+correct, recording (the MP4 encoder, here on this thread).
 """
 
 from __future__ import annotations
@@ -40,8 +41,17 @@ from facewire.receiver.recorder import Mp4Recorder  # noqa: E402
 from facewire.sender.capture import VideoSource, demo_clip_path  # noqa: E402
 from facewire.sender.encoder import FaceEncoder  # noqa: E402
 
-SENDER = ("tracking", "synthesis", "fit", "camera motion", "edge measure", "rem")
-RECEIVER = ("surround warp", "render", "readback", "edge correct", "recording")
+SENDER = (
+    "tracking",
+    "synthesis",
+    "fit",
+    "camera motion",
+    "body motion",
+    "edge measure",
+    "rem",
+    "refresh",
+)
+RECEIVER = ("surround warp", "refresh shown", "render", "readback", "edge correct", "recording")
 
 
 def _scaled(size: tuple[int, int], crop: tuple[int, int] | None = None) -> Callable:
@@ -149,10 +159,15 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
         stages.wrap(encoder.synthesis, "refine", "synthesis")
     stages.wrap(encoder, "analyse", "fit")  # less what it calls, below
     stages.wrap(encoder.camera, "update", "camera motion")
+    if encoder.body is not None:
+        stages.wrap(encoder.body, "update", "body motion")
     stages.wrap(encoder.edge, "measure", "edge measure")
     if encoder.rem is not None:
         stages.wrap(encoder.rem, "changed", "rem")
+    if encoder.refresh is not None:
+        stages.wrap(encoder.refresh, "measure", "refresh")
     stages.wrap(decoder.surround, "warp", "surround warp")
+    stages.wrap(decoder.refresh, "over", "refresh shown")
     stages.wrap(decoder.renderer, "render", "render")
     stages.wrap(decoder.renderer, "_read_rgba", "readback")
     stages.wrap(receiver_decoder, "correct", "edge correct")
@@ -164,14 +179,14 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
         for frame in captured:
             sent = encoder.encode(frame)
             for patch in encoder.take_patches():
-                decoder.add_patch(decode(bytes(patch)))  # type: ignore[arg-type]
+                decoder.offer(decode(bytes(patch)))  # REM patches and refreshes
             if sent is not None:
                 shown = decoder.decode(decode(bytes(sent)))  # type: ignore[arg-type]
             assert shown is not None
             recorder.write(decoder.reconstruct(shown))
             cpu, wall = stages.take()
             for times in (cpu, wall):
-                _subtract(times, "fit", ("tracking", "synthesis", "camera motion"))
+                _subtract(times, "fit", ("tracking", "synthesis", "camera motion", "body motion"))
                 _subtract(times, "render", ("readback",))
             outline = decoder.image_vertices(shown)[decoder.mesh.outline]
             yield cpu, wall, float(np.ptp(outline[:, 0]))
@@ -191,7 +206,7 @@ def main() -> None:
     header = "stage (CPU ms, median)".ljust(24) + "".join(n.rjust(18) for n in names)
     columns: dict[str, dict[str, float]] = {}
     faces: dict[str, float] = {}
-    walls: dict[str, tuple[float, float]] = {}
+    walls: dict[str, tuple[float, ...]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.clips or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -210,13 +225,17 @@ def main() -> None:
             faces[name] = float(np.median([face for _, _, face in rows]))
             send = [sum(w.get(s, 0.0) for s in SENDER) for _, w, _ in rows]
             recv = [sum(w.get(s, 0.0) for s in RECEIVER) for _, w, _ in rows]
-            walls[name] = (1000 * float(np.median(send)), 1000 * float(np.median(recv)))
+            # Medians, and means: the refreshes are compared every few frames only.
+            walls[name] = tuple(
+                1000 * float(f(t)) for f in (np.median, np.mean) for t in (send, recv)
+            )
     print(f"load average {os.getloadavg()[0]:.2f}; {args.frames} frames per clip")
     print(header)
     print("face width (px)".ljust(24) + "".join(f"{faces[n]:18.0f}" for n in names))
     for stage in (*SENDER, *RECEIVER):
         print(stage.ljust(24) + "".join(f"{columns[n][stage]:18.2f}" for n in names))
-    for label, index in (("sender wall ms", 0), ("receiver wall ms", 1)):
+    labels = ("sender wall ms", "receiver wall ms", "sender wall ms, mean", "receiver, mean")
+    for index, label in enumerate(labels):
         print(label.ljust(24) + "".join(f"{walls[n][index]:18.2f}" for n in names))
 
 

@@ -440,6 +440,8 @@ def send(
         "frames_untracked": encoder.frames_untracked,
         "frames_over_rate": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
         "edge_bytes": round(encoder.edge_bytes),
+        "body_bytes": round(encoder.body_bytes),
+        "refresh_bytes": 0 if encoder.refresh is None else encoder.refresh.bytes,
         "fit_residual": encoder.residual.summary(),
         "width": width,
         "height": height,

@@ -211,8 +211,14 @@ def _call(
         "receiver_fps": report["receiver_fps"],
         "latency_ms": report["latency_ms"],
         "kbps": kbps,
-        # The face's edge corrections ride in the geometry's packets, on a budget of their own.
+        # The face's edge corrections and the body's motion ride in the geometry's packets,
+        # each on a budget of its own.
         "edge_kbps": encoder.edge_bytes * 8 / duration / 1000,
+        "body_kbps": encoder.body_bytes * 8 / duration / 1000,
+        # What the model misses, sent as it is: a part of `rem` (models/refresh.py).
+        "refresh_kbps": 0.0
+        if encoder.refresh is None
+        else encoder.refresh.bytes * 8 / duration / 1000,
         "bytes": traffic,
         "messages": messages,
         "encrypted": True,

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from facewire.protocol.channels import FrameValues
-from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot, decode
+from facewire.protocol.packets import DeltaFrame, KeyFrame, Refresh, RemPatch, Snapshot, decode
 from facewire.receiver.decoder import FaceDecoder
 
 if TYPE_CHECKING:
@@ -42,7 +42,7 @@ class Loopback:
         self.decoder = FaceDecoder(self.snapshot)
         #: What the receiver shows: the values of the last frame packet (None before one).
         self.shown: FrameValues | None = None
-        #: Patch packets the receiver could not use (see FaceDecoder.add_patch).
+        #: Patches and refreshes the receiver could not use (FaceDecoder.add_patch, add_refresh).
         self.refused = 0
         #: New scenes (sessions started at a cut).
         self.scenes = 0
@@ -72,13 +72,15 @@ class Loopback:
         sent = [bytes(p) for p in self.encoder.take_patches()]
         return sent if packet is None else [*sent, bytes(packet)]
 
-    def receive(self, sent: list[bytes]) -> list[RemPatch | KeyFrame | DeltaFrame]:
+    def receive(self, sent: list[bytes]) -> list[RemPatch | Refresh | KeyFrame | DeltaFrame]:
         """The receiver's side: each packet decoded and taken, as the receive loop does."""
         packets = []
         for data in sent:
             packet = decode(data)
             if isinstance(packet, RemPatch):
                 self.refused += not self.decoder.add_patch(packet)
+            elif isinstance(packet, Refresh):
+                self.refused += not self.decoder.add_refresh(packet)
             elif isinstance(packet, (KeyFrame, DeltaFrame)):
                 self.shown = self.decoder.decode(packet)
             else:

@@ -36,6 +36,7 @@ from facewire.protocol.packets import (
     KeyFrame,
     KeyframeRequest,
     PacketError,
+    Refresh,
     RemPatch,
     Snapshot,
     decode,
@@ -168,7 +169,7 @@ class Peer:
                 self.shown.append((now_us(), values.capture_us))
                 del self.shown[:-SHOWN_KEPT]
                 self.audio.frame(index, values.capture_us, arrival_us)
-        elif isinstance(packet, RemPatch):
+        elif isinstance(packet, (RemPatch, Refresh)):
             self.decoder.offer(packet)
         elif isinstance(packet, AudioFrame):
             figures.audio_packets += 1

@@ -28,6 +28,7 @@ from facewire.protocol.packets import (
     KeyFrame,
     KeyframeRequest,
     Packet,
+    Refresh,
     RemPatch,
     Snapshot,
 )
@@ -88,7 +89,7 @@ class RoomSender:
         with self._lock:
             self.bytes_by_kind[type(packet).__name__] += len(data)
             self._last_publish = self._clock()
-            if isinstance(packet, RemPatch) and (
+            if isinstance(packet, (RemPatch, Refresh)) and (
                 len(data) >= PACED_PATCH_BYTES or self._bundler.patch_bytes_waiting
             ):
                 self._bundler.add_patch(data)

@@ -27,13 +27,24 @@ moved away, that painted-out scene shows. Then nothing holds the top of the head
 still ring above the eyes moves with the head as the head ring does, so the hair goes
 wherever the head goes. Held still instead, a head that shrinks (a person leaning back)
 pulled its hair into streaks up to the still ring, and past the frame's top edge the warp's
-reflected border mirrored hair into them. What the person layer would take from outside the
-snapshot frame is not the person's: the source is padded with the frame's reflection, whose
-person layer is empty, and the scene shows there.
+reflected border mirrored hair into them. What the person layer would take from above the
+snapshot frame, or beside it, is not the person's: the source is padded with the frame's
+reflection, whose person layer is empty there, and the scene shows (a shoulder cut by the
+side may end in a straight edge; carried on, it went on to the frame's edge where the camera
+showed it ending, and mirrored it came back as a second shoulder). Below the frame it is: a
+body cut by the frame's bottom edge goes straight on past it, so a body that shrinks
+(models/body.py) still reaches the bottom.
+
+The rest of the person (shoulders, chest, arms) moves by the body's own similarity when one
+is given (``body``: the person's pixels from the snapshot frame to this one, camera
+included): the still ring's points below the mouth and the neck's share of the head ring go
+with it instead of the camera, and so does the person layer beyond the head's reach. Where
+the body moved away the painted-out scene shows.
 
 The spline maps each output pixel back to the snapshot pixel it shows (a backward map), solved
-per frame with its centres at the current control points, evaluated on a coarse grid and
-interpolated to full size for ``cv2.remap``.
+per frame with its centres at the current control points (of two that would fold it, a ring's
+point following the head carried onto one held still, the less important left out), evaluated
+on a coarse grid and interpolated to full size for ``cv2.remap``.
 """
 
 from __future__ import annotations
@@ -43,7 +54,7 @@ import logging
 import cv2
 import numpy as np
 
-from facewire.models.thin_plate import ThinPlate
+from facewire.models.thin_plate import ThinPlate, _squared_distances
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +72,10 @@ FADE = 1.3
 GRID_STEP = 16
 #: Tikhonov regulariser of the spline (pixels^2): keeps nearly coincident controls stable.
 SMOOTHING = 1e-3
+#: Of two controls closer than this many times the difference of their displacements, the
+#: less important one is left out: where the difference reaches the distance the spline folds
+#: (output pixels on both sides show one snapshot pixel, and what lay between is torn open).
+UNFOLD = 1.0
 #: Where the segmentation's probability is above this, the pixel is the person's. Low: a
 #: hat or hair half taken for scene tears when the head moves.
 PERSON_THRESHOLD = 0.2
@@ -151,6 +166,12 @@ class SurroundWarp:
             self._still_follow = np.clip(
                 (mouth - self._still[:, 1]) / max(mouth - eyes, 1e-6), 0.0, 1.0
             )
+        # Which controls give way when two would fold the warp: the outline first, then the
+        # head ring, then the still ring, its points that follow the head before those held.
+        still_first = np.argsort(-self._still_follow, kind="stable")
+        n = len(outline)
+        self._rank = np.empty(2 * n + len(self._still), int)
+        self._rank[np.r_[np.arange(2 * n), 2 * n + still_first]] = np.arange(len(self._rank))
         # Grid nodes where cv2.resize by GRID_STEP samples them ((j + 0.5) * step - 0.5), so
         # resizing the coarse map is exact bilinear interpolation between nodes.
         nx, ny = -(-self.width // GRID_STEP), -(-self.height // GRID_STEP)
@@ -174,8 +195,9 @@ class SurroundWarp:
         # (and OpenCV remaps four channels faster than three).
         self._layered = person is not None
         self._scene = background
-        # Pictures moved by the camera alone, kept while it stays where it is (its channel is
-        # quantised, so it holds for many frames): (camera, which, box) -> picture.
+        # Pictures moved by the camera (and the body) alone, kept while they stay where they
+        # are (their channels are quantised, so they hold for many frames):
+        # (camera and body, which, box) -> picture.
         self._by_camera: dict[tuple[bytes, str, tuple[int, int, int, int]], np.ndarray] = {}
         alpha = np.full((self.height, self.width), 255, np.uint8)
         if person is not None:
@@ -184,11 +206,14 @@ class SurroundWarp:
             weight, painted = _person_layer(person)
             alpha = np.round(255.0 * weight).astype(np.uint8)
             self._scene = _paint_out(background, painted)
-        # Padded by the frame's reflection, whose person layer is empty: what the warp takes
-        # from beyond the snapshot frame's edges is scene, never a mirrored person.
+        # Padded by the frame's reflection, whose person layer is empty above and beside the
+        # frame: what the warp takes from there is scene, never mirrored hair (nor a mirrored
+        # shoulder beside a body that shrank). Below the frame a body cut by its bottom edge
+        # goes straight on, as bodies do.
         pad = self._pad
         colour = cv2.copyMakeBorder(background, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
-        layer = cv2.copyMakeBorder(alpha, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+        below = cv2.copyMakeBorder(alpha, 0, pad, 0, 0, cv2.BORDER_REPLICATE)
+        layer = cv2.copyMakeBorder(below, pad, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
         self._source = np.dstack([colour, layer])
 
     def controls(
@@ -198,7 +223,8 @@ class SurroundWarp:
         snapshot frame (face outline, head ring, still ring).
 
         ``outline`` (k, 3) is the face outline now, image space ((k, 2): flat); ``camera`` an
-        optional (3, 3) homography taking snapshot-frame background pixels to this frame's.
+        optional (3, 3) homography taking snapshot-frame pixels to this frame's of what does
+        not follow the head (the scene, or with :meth:`warp`'s ``body`` the person's body).
         """
         outline3 = _in_space(outline)
         if outline3.shape != self._outline3.shape:
@@ -229,10 +255,11 @@ class SurroundWarp:
         """Full-size float32 maps (x, y) for ``cv2.remap``: the snapshot pixel each output
         pixel shows; with ``box`` (x0, y0, x1, y1), the maps of that part of the frame.
 
-        The displacement is the camera's (exact, everywhere) plus the head's: a thin-plate
-        spline through the head's controls, faded to nothing just beyond the still ring, so
-        the scene further out is untouched by the head. ``origin``: where the snapshot frame's
-        pixel (0, 0) lies in the image remapped (0, or the warp's padding).
+        The displacement is the camera's (exact, everywhere; or the body's, for the person
+        layer) plus the head's: a thin-plate spline through the head's controls, faded to
+        nothing just beyond the still ring, so the scene further out is untouched by the
+        head. ``origin``: where the snapshot frame's pixel (0, 0) lies in the image remapped
+        (0, or the warp's padding).
         """
         camera = None if _is_still(camera) else camera
         x0, y0, x1, y1 = box = box or (0, 0, self.width, self.height)
@@ -268,7 +295,8 @@ class SurroundWarp:
         reached = reach > 0
         if reached.any():
             residual = then - (now if back is None else _apply(back, now))
-            spline = ThinPlate(now, residual, SMOOTHING)
+            keep = unfolded(now, residual, self._rank)
+            spline = ThinPlate(now[keep], residual[keep], SMOOTHING)
             shift[reached] += reach[reached, None] * spline(grid[reached])
         # The box's corner in the image remapped rides on the displacement: interpolation
         # keeps a constant as it is.
@@ -286,17 +314,28 @@ class SurroundWarp:
         outline: np.ndarray,
         camera: np.ndarray | None = None,
         box: tuple[int, int, int, int] | None = None,
+        body: np.ndarray | None = None,
     ) -> np.ndarray:
         """(h, w, 3) uint8: the snapshot frame with the head's surroundings moved along; with
         ``box`` (x0, y0, x1, y1) only that part of it (the sender measures around the face).
+        ``body``: an optional (3, 3) homography taking the snapshot frame's person pixels to
+        this frame's (the camera's motion included): the person beyond the head's reach
+        moves by it, the scene by ``camera`` (without a person layer, all by ``camera``).
 
         Only the head's reach is warped pixel by pixel; beyond it the snapshot frame is moved
-        by the camera alone (copied, when the camera is still), so the work grows with the
-        face, not the frame.
+        by the camera alone (copied, when the camera is still), or with a body moving on its
+        own, the person by the body over the scene by the camera (kept while both hold), so
+        the work grows with the face, not the frame.
         """
         camera = None if _is_still(camera) else camera
+        own = (
+            self._layered
+            and body is not None
+            and not np.allclose(body, np.eye(3) if camera is None else camera, rtol=0.0, atol=1e-9)
+        )
+        person = body if own else None
         bx0, by0, bx1, by1 = box = box or (0, 0, self.width, self.height)
-        out = self._moved("frame", camera, box).copy()
+        out = self._moved("frame", camera, box, person).copy()
         (x0, x1), (y0, y1) = self._box
         x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
         if x1 <= x0 or y1 <= y0:
@@ -306,31 +345,47 @@ class SurroundWarp:
         # shows as a black band. One two-channel map, no second (the stubs do not know it).
         moved4 = cv2.remap(  # type: ignore[call-overload]
             self._source,
-            self._map(outline, camera, reach, self._pad),
+            self._map(outline, camera if person is None else person, reach, self._pad),
             None,
             cv2.INTER_LINEAR | cv2.WARP_RELATIVE_MAP,
             borderMode=cv2.BORDER_REFLECT_101,
         )
         inside = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         if self._layered:
-            out[inside] = _over(moved4, self._moved("scene", camera, reach))
+            out[inside] = _over(moved4, self._moved("scene", camera, reach, person))
         else:
             out[inside] = cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR)
         return out
 
     def _moved(
-        self, which: str, camera: np.ndarray | None, box: tuple[int, int, int, int]
+        self,
+        which: str,
+        camera: np.ndarray | None,
+        box: tuple[int, int, int, int],
+        body: np.ndarray | None = None,
     ) -> np.ndarray:
         """The part ``box`` of the snapshot frame (``which`` "frame") or of the scene behind
-        the person ("scene") moved by ``camera``: not to be written into."""
+        the person ("scene") moved by ``camera``; with ``body``, the frame is the person
+        layer moved by it over the scene moved by ``camera``: not to be written into."""
         image = self.background if which == "frame" else self._scene
-        if camera is None:
+        if camera is None and body is None:
             return image[box[1] : box[3], box[0] : box[2]]
-        key = (camera.tobytes(), which, box)
+        motion = b"" if camera is None else camera.tobytes()
+        key = (motion + (b"" if body is None else body.tobytes()), which, box)
         if key not in self._by_camera:
             if len(self._by_camera) >= 4 or any(k[0] != key[0] for k in self._by_camera):
-                self._by_camera.clear()  # the camera moved (or the sender's box did)
-            self._by_camera[key] = _moved(image, camera, box)
+                self._by_camera.clear()  # the camera or body moved (or the sender's box did)
+            if which == "frame" and body is not None:
+                image = self._scene
+            x0, y0, x1, y1 = box
+            picture = image[y0:y1, x0:x1] if camera is None else _moved(image, camera, box)
+            if which == "frame" and body is not None:
+                # The padded source (its layer empty above and beside the frame, carried on
+                # below it) moved by the body, over the scene moved by the camera.
+                pad = self._pad
+                unpad = np.array([[1.0, 0.0, -pad], [0.0, 1.0, -pad], [0.0, 0.0, 1.0]])
+                picture = _over(_moved(self._source, body @ unpad, box), picture)
+            self._by_camera[key] = picture
         return self._by_camera[key]
 
 
@@ -389,6 +444,24 @@ def _paint_out(image: np.ndarray, region: np.ndarray) -> np.ndarray:
     out = image.copy()
     out[region] = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)[region]
     return out
+
+
+def unfolded(points: np.ndarray, shifts: np.ndarray, rank: np.ndarray) -> np.ndarray:
+    """(n,) bool: which of the controls ``points`` (n, 2), pixels, with displacements
+    ``shifts`` (n, 2) to keep so that no two lie closer than ``UNFOLD`` times the difference
+    of their displacements; of two that do, the one of higher ``rank`` (n,) goes.
+
+    A head tilting onto its shoulder carries a control that follows it next to one held
+    still: there the displacement changes by more than the distance, and the spline folds the
+    snapshot over itself (on Claire's shoulder, a blob of the wall behind)."""
+    gap, step = _squared_distances(points, points), _squared_distances(shifts, shifts)
+    clash = np.less(gap, UNFOLD**2 * step)
+    keep = np.ones(len(points), bool)
+    order = np.argsort(rank)
+    for i in order[clash.any(1)[order]]:
+        if keep[i]:
+            keep[clash[i] & (rank > rank[i])] = False
+    return keep
 
 
 def reach_weight(

@@ -3,8 +3,8 @@
 A bundle is a run of elements, each a length (an unsigned LEB128 varint) and that many bytes.
 An element's first byte says what it is:
 
-- ``0x2K``: a version-2 packet as it travels on ZeroMQ (a KeyFrame, a DeltaFrame, a RemPatch, an
-  AudioFrame, a Heartbeat, a Bye): whatever is due goes in one datagram;
+- ``0x2K``: a version-2 packet as it travels on ZeroMQ (a KeyFrame, a DeltaFrame, a RemPatch, a
+  Refresh, an AudioFrame, a Heartbeat, a Bye): whatever is due goes in one datagram;
 - ``0x31`` :class:`Fragment`: a slice of a version-2 packet too large for the datagram it
   would have gone in (a REM patch paid for a little at a time);
 - ``0x32`` :class:`Report`: the receiver's reception report, which the sender's rate control

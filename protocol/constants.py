@@ -31,6 +31,7 @@ class Kind(IntEnum):
     DELTA_FRAME = 9
     AUDIO_FRAME = 10
     MEDIA_KEY = 11
+    REFRESH = 12
 
 
 # --- limits (decoding rejects anything beyond them) -----------------------------------------
@@ -88,6 +89,9 @@ REM_REFERENCE: Final = "ref"
 #: Images of each REM region both ends hold besides the snapshot's texture (a reference may
 #: name one): the newest ones, in the order their patches were sent.
 REM_CACHE: Final = 6
+#: A refresh (a part of the camera's picture the model does not show) is the area of its
+#: frame it covers, at most this many pixels on a side.
+MAX_REFRESH_SIDE: Final = 4096
 
 # --- bandwidth accounting channels ---------------------------------------------------------------
 

@@ -47,6 +47,7 @@ from facewire.protocol.constants import (
     MAX_MAP_LEN,
     MAX_PACKET_BYTES,
     MAX_PARAMS,
+    MAX_REFRESH_SIDE,
     MAX_STR_LEN,
     MAX_VERTICES,
     MIN_FPS,
@@ -630,6 +631,53 @@ class RemPatch(_Packet):
 
 
 @dataclass(frozen=True, eq=False)
+class Refresh(_Packet):
+    """A part of the camera's picture that the model does not show (a hand raised, an object,
+    the scene uncovered), shown over the receiver's picture from frame ``seq`` on.
+
+    x, y, width, height : the area of the frame it covers, pixels (x, y its top-left corner)
+    codec : "jpeg", "png" or "webp", data the image (any size: it is scaled to the area); or
+        codec "" and data empty: the area shows the model's picture again
+    """
+
+    KIND: ClassVar[Kind] = Kind.REFRESH
+    CHANNEL: ClassVar[str] = CHANNEL_REM
+    N_FIELDS: ClassVar[int] = 7
+
+    seq: int
+    x: int
+    y: int
+    width: int
+    height: int
+    codec: str
+    data: bytes = field(repr=False)
+
+    def __post_init__(self) -> None:
+        _set(self, "seq", _int("Refresh.seq", self.seq, 0, UINT32_MAX))
+        _set(self, "x", _int("Refresh.x", self.x, 0, MAX_REFRESH_SIDE - 1))
+        _set(self, "y", _int("Refresh.y", self.y, 0, MAX_REFRESH_SIDE - 1))
+        _set(self, "width", _int("Refresh.width", self.width, 1, MAX_REFRESH_SIDE))
+        _set(self, "height", _int("Refresh.height", self.height, 1, MAX_REFRESH_SIDE))
+        codec = _str("Refresh.codec", self.codec, allow_empty=True)
+        if codec:
+            if codec not in REM_CODECS:
+                raise PacketError(f"Refresh.codec: unknown codec {codec!r} (known: {REM_CODECS})")
+            data = _image("Refresh.data", self.data, codec)
+            if not data:
+                raise PacketError("Refresh.data: must not be empty")
+        else:
+            data = _bytes("Refresh.data", self.data)
+            if data:
+                raise PacketError("Refresh.data: an image needs a codec")
+        _set(self, "data", data)
+
+    @property
+    def clears(self) -> bool:
+        """Whether it gives its area back to the model's picture."""
+        return not self.codec
+
+
+@dataclass(frozen=True, eq=False)
 class KeyframeRequest(_Packet):
     """Receiver -> sender: please send a keyframe; seq is the last frame decoded (or 0)."""
 
@@ -735,6 +783,7 @@ Packet: TypeAlias = (
     | SnapshotRequest
     | AudioFrame
     | MediaKey
+    | Refresh
 )
 
 _BY_KIND: dict[int, type[_Packet]] = {
@@ -751,6 +800,7 @@ _BY_KIND: dict[int, type[_Packet]] = {
         SnapshotRequest,
         AudioFrame,
         MediaKey,
+        Refresh,
     )
 }
 

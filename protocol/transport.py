@@ -1,11 +1,12 @@
 """ZeroMQ transport: the ZeroMQ Guide's "Clone" pattern with a back channel, over CURVE.
 
-The sender has a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, AudioFrame, Heartbeat, Bye,
-and a new Snapshot) and a ROUTER socket (snapshot requests and the back channel: KeyframeRequest,
-ReceiverStats, probes); a receiver has a SUB and a DEALER socket. By default the sender binds and
-the receiver connects; either side may take the other role (``SenderEndpoint(connect=True)``
-with ``ReceiverEndpoint(bind=True)``), which changes nothing above the sockets: the sender stays
-the CURVE server, the subscription and the handshake run the same way.
+The sender has a PUB socket (updates: KeyFrame, DeltaFrame, RemPatch, Refresh, AudioFrame,
+Heartbeat, Bye, and a new Snapshot) and a ROUTER socket (snapshot requests and the back
+channel: KeyframeRequest, ReceiverStats, probes); a receiver has a SUB and a DEALER socket.
+By default the sender binds and the receiver connects; either side may take the other role
+(``SenderEndpoint(connect=True)`` with ``ReceiverEndpoint(bind=True)``), which changes nothing
+above the sockets: the sender stays the CURVE server, the subscription and the handshake run
+the same way.
 
 Security: by default every socket uses CURVE. The sender's PUB and ROUTER are CURVE servers with
 the sender's secret key, and a ZAP handler admits only the clients whose public keys it was
@@ -120,6 +121,7 @@ from facewire.protocol.packets import (
     Packet,
     PacketError,
     ReceiverStats,
+    Refresh,
     RemPatch,
     Snapshot,
     SnapshotRequest,
@@ -132,14 +134,16 @@ KeyFile = str | os.PathLike[str]
 
 #: Updates with a seq, dropped by the receiver when older than the snapshot's seq. (A DeltaFrame
 #: has no seq: it is passed on, and the decoder ignores deltas until its chain starts.)
-SEQ_KINDS = (KeyFrame, RemPatch)
+SEQ_KINDS = (KeyFrame, RemPatch, Refresh)
 #: Packets that travel on the PUB/SUB update channel.
-UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, Snapshot, AudioFrame)
+UPDATE_KINDS = (KeyFrame, DeltaFrame, RemPatch, Refresh, Heartbeat, Bye, Snapshot, AudioFrame)
 #: Packets that may also come over the second path (ROUTER to DEALER).
 FRAME_KINDS = (KeyFrame, DeltaFrame)
 #: Updates that travel as datagrams while a receiver's media path is live (a Snapshot never does).
-MEDIA_KINDS = (KeyFrame, DeltaFrame, RemPatch, Heartbeat, Bye, AudioFrame)
-#: A REM patch at least this long waits for what the budget leaves (else it rides with its frame).
+MEDIA_KINDS = (KeyFrame, DeltaFrame, RemPatch, Refresh, Heartbeat, Bye, AudioFrame)
+#: Patches (REM and refresh) wait for what the budget leaves when at least this long (else
+#: they ride with their frame).
+PATCH_KINDS = (RemPatch, Refresh)
 _PACED_PATCH_BYTES = 64
 #: Most datagrams sent at once to empty the queue of patches before a Bye.
 _MAX_DRAIN_DATAGRAMS = 64
@@ -601,7 +605,7 @@ class SenderEndpoint(_Endpoint):
 
     def publish(
         self,
-        packet: KeyFrame | DeltaFrame | RemPatch | Heartbeat | Bye | Snapshot | AudioFrame,
+        packet: Packet,
         seq: int | None = None,
     ) -> None:
         """Publish an update to every subscribed receiver (never blocks; drops past the HWM).
@@ -661,7 +665,7 @@ class SenderEndpoint(_Endpoint):
                     break
                 for bundle in self._bundler.flush(now, math.inf):
                     self._media.send(bundle, now)
-        if isinstance(packet, RemPatch) and (
+        if isinstance(packet, PATCH_KINDS) and (
             len(data) >= _PACED_PATCH_BYTES or self._bundler.patch_bytes_waiting
         ):
             # (A small patch behind a paced one waits too: it may refer to that one's image.)
@@ -1195,7 +1199,8 @@ class ReceiverEndpoint(_Endpoint):
     def recv(self, timeout_ms: int = 0) -> Packet | None:
         """The next update at or after the snapshot's seq, or None after ``timeout_ms``.
 
-        Returns KeyFrame, DeltaFrame, RemPatch, AudioFrame, Heartbeat, Bye or a new Snapshot.
+        Returns KeyFrame, DeltaFrame, RemPatch, Refresh, AudioFrame, Heartbeat, Bye or a new
+        Snapshot.
         Malformed
         messages are counted in ``stats.malformed`` and dropped; bad input never raises.
         Raises :class:`RejoinNeeded` (until :meth:`fetch_snapshot` is called again) once the

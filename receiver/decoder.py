@@ -15,6 +15,7 @@ import logging
 import cv2
 import numpy as np
 
+from facewire.models.body import BODY, BODY_SIZE
 from facewire.models.camera import CAMERA, CAMERA_SIZE, homography_from_corners
 from facewire.models.edge import EDGE, EDGE_POINTS, EDGE_SIZE, correct
 from facewire.models.face_channels import (
@@ -32,6 +33,7 @@ from facewire.models.mesh import load_canonical
 from facewire.models.mouth_opening import LIPS_SIZE, MouthOpening
 from facewire.models.person import person_mask
 from facewire.models.pose import Pose
+from facewire.models.refresh import RefreshLayer
 from facewire.models.rem import RemLayout
 from facewire.models.rig import Rig, load_rig
 from facewire.models.surround import SurroundWarp
@@ -39,7 +41,14 @@ from facewire.models.wires import WireDeformer
 from facewire.protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
 from facewire.protocol.constants import MAX_IMAGE_SIDE
 from facewire.protocol.images import ImageError, decode_image
-from facewire.protocol.packets import DeltaFrame, KeyFrame, PacketError, RemPatch, Snapshot
+from facewire.protocol.packets import (
+    DeltaFrame,
+    KeyFrame,
+    PacketError,
+    Refresh,
+    RemPatch,
+    Snapshot,
+)
 from facewire.protocol.quant import dequantise
 from facewire.receiver.rem import RemMerger
 
@@ -108,6 +117,7 @@ class FaceDecoder:
             LIPS: LIPS_SIZE,
             CAMERA: CAMERA_SIZE,
             EDGE: EDGE_SIZE,
+            BODY: BODY_SIZE,
         }
         got = {name: size for name, size, _ in snapshot.channels}
         if got != expected:
@@ -144,6 +154,10 @@ class FaceDecoder:
         self.rem = self._rem(snapshot)
         #: REM patches that came without a session able to take them.
         self.rem_dropped = 0
+        #: What the model does not show, as the camera saw it (models/refresh.py).
+        self.refresh = RefreshLayer(snapshot.width, snapshot.height)
+        #: Refreshes that could not be shown (an area outside the frame, an undecodable image).
+        self.refresh_dropped = 0
         layout = self.rem.layout if self.rem is not None else None
         from facewire.receiver.render import FaceRenderer  # OpenGL only where it is needed
 
@@ -219,9 +233,30 @@ class FaceDecoder:
             return False
         return self.rem.add(packet)
 
+    def add_refresh(self, packet: Refresh) -> bool:
+        """Keep a refresh for the frame it belongs to (shown by :meth:`reconstruct` from
+        then on); False, and counted, when its area is not in the frame or its image does
+        not decode."""
+        image = None
+        try:
+            if not self.refresh.fits(packet.x, packet.y, packet.width, packet.height):
+                raise ImageError(f"area {packet.width}x{packet.height} at ({packet.x}, "
+                                 f"{packet.y}) outside the frame")  # fmt: skip
+            if not packet.clears:
+                image = decode_image(packet.data, "refresh")
+        except ImageError as exc:
+            logger.debug("refresh dropped: %s", exc)
+            self.refresh_dropped += 1
+            return False
+        self.refresh.add(packet.seq, packet.x, packet.y, packet.width, packet.height, image)
+        return True
+
     def offer(self, packet: object) -> bool:
-        """True when ``packet`` is a REM patch, now kept (or counted and dropped): the
-        receive loop hands every update here first."""
+        """True when ``packet`` is a REM patch or a refresh, now kept (or counted and
+        dropped): the receive loop hands every update here first."""
+        if isinstance(packet, Refresh):
+            self.add_refresh(packet)
+            return True
         if not isinstance(packet, RemPatch):
             return False
         self.add_patch(packet)
@@ -288,6 +323,13 @@ class FaceDecoder:
         shift = dequantise(values.values[CAMERA], spec.step)
         return homography_from_corners(shift, self.background.shape[1], self.background.shape[0])
 
+    def body(self, values: FrameValues) -> np.ndarray:
+        """(3, 3) similarity of the body's own motion since the snapshot frame, before the
+        camera's (models/body.py)."""
+        spec = next(s for s in self.specs if s.name == BODY)
+        shift = dequantise(values.values[BODY], spec.step)
+        return homography_from_corners(shift, self.background.shape[1], self.background.shape[0])
+
     def image_vertices(self, values: FrameValues) -> np.ndarray:
         """(n, 3) deformed, posed vertices in the sender's image space (pixels)."""
         pose, params, lips = self.parameters(values)
@@ -304,18 +346,27 @@ class FaceDecoder:
         patches of frames up to this one in its texture."""
         if self.rem is not None and self.rem.due(values.seq):
             self.renderer.set_texture(self.rem.texture)
+        self.refresh.due(values.seq)
         return self.draw_vertices(
-            self.image_vertices(values), self.camera(values), self.edge(values)
+            self.image_vertices(values), self.camera(values), self.edge(values), self.body(values)
         )
 
     def draw_vertices(
-        self, vertices: np.ndarray, camera: np.ndarray, edge: np.ndarray | None = None
+        self,
+        vertices: np.ndarray,
+        camera: np.ndarray,
+        edge: np.ndarray | None = None,
+        body: np.ndarray | None = None,
     ) -> np.ndarray:
         """:meth:`reconstruct` from the face's (n, 3) vertices in image space (pixels), the
-        camera's homography of :meth:`camera` and the edge's corrections of :meth:`edge`
-        (the playout draws pictures between two frames this way)."""
+        camera's homography of :meth:`camera`, the edge's corrections of :meth:`edge` and
+        the body's motion of :meth:`body` (the playout draws pictures between two frames
+        this way)."""
         outline = vertices[self._outline, :2]
-        background = self.surround.warp(vertices[self._outline], camera)
+        person = None if body is None else camera @ body
+        background = self.surround.warp(vertices[self._outline], camera, body=person)
+        # What the model misses, as the camera saw it: over the surroundings, under the face.
+        self.refresh.over(background, outline)
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))

@@ -49,14 +49,16 @@ KEPT_FACES = 4
 @dataclass(frozen=True, eq=False)
 class FaceState:
     """What one picture shows: the head's pose, (P,) wire parameters, the inner lips'
-    opening, the camera's (3, 3) homography from the snapshot frame and the face's edge
-    corrections (models/edge.py)."""
+    opening, the camera's (3, 3) homography from the snapshot frame, the face's edge
+    corrections (models/edge.py) and the body's (3, 3) motion before the camera's
+    (models/body.py)."""
 
     pose: Pose
     wires: np.ndarray
     lips: np.ndarray
     camera: np.ndarray
     edge: np.ndarray
+    body: np.ndarray
 
 
 def blend_pose(a: Pose, b: Pose, t: float) -> Pose:
@@ -101,6 +103,7 @@ def blend_state(
         blend(a.lips, b.lips, t, {"mouth": np.arange(len(a.lips))}),  # on the mouth's curve
         blend_camera(a.camera, b.camera, t, *size),
         (1.0 - t) * a.edge + t * b.edge,
+        blend_camera(a.body, b.body, t, *size),
     )
 
 
@@ -129,7 +132,10 @@ class Painter:
 
     def state(self, values: FrameValues) -> FaceState:
         pose, params, lips = self.decoder.parameters(values)
-        return FaceState(pose, params, lips, self.decoder.camera(values), self.decoder.edge(values))
+        decoder = self.decoder
+        return FaceState(
+            pose, params, lips, decoder.camera(values), decoder.edge(values), decoder.body(values)
+        )
 
     def exact(self, values: FrameValues) -> np.ndarray:
         """(h, w, 3) uint8 BGR picture of one frame, as :meth:`FaceDecoder.reconstruct`."""
@@ -147,7 +153,9 @@ class Painter:
         if t == 1.0:
             return self.exact(b)
         state, model = self.face_between(a, b, t)
-        return self.decoder.draw_vertices(state.pose.apply(model), state.camera, state.edge)
+        return self.decoder.draw_vertices(
+            state.pose.apply(model), state.camera, state.edge, state.body
+        )
 
     def face_between(
         self, a: FrameValues, b: FrameValues, t: float

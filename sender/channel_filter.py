@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facewire.models.body import BODY
 from facewire.models.camera import CAMERA
 from facewire.models.face_channels import POSE_ROTATION, POSE_SCALE, POSE_TRANSLATION
 
@@ -64,6 +65,7 @@ SETTINGS = {
     POSE_ROTATION: ROTATION,
     POSE_SCALE: SLOW,
     CAMERA: SLOW,
+    BODY: SLOW,
 }
 
 

@@ -111,15 +111,22 @@ class EdgeMeter:
         return out
 
     def measure(
-        self, image: np.ndarray, outline: np.ndarray, camera: np.ndarray | None
+        self,
+        image: np.ndarray,
+        outline: np.ndarray,
+        camera: np.ndarray | None,
+        body: np.ndarray | None = None,
     ) -> np.ndarray:
         """(EDGE_POINTS, 2) corrections, pixels: at the edge points of ``outline`` (k, 3), the
         face's outline as the receiver draws it in ``image`` (h, w, 3) BGR, where the frame's
-        content sits in the receiver's picture (``camera``: its camera homography)."""
+        content sits in the receiver's picture (``camera``: its camera homography; ``body``:
+        its body's, models/surround.py)."""
         k = self.reduce
         poly = self._work(outline)
         if camera is not None and k > 1:
             camera = self._to_work @ camera @ self._from_work
+        if body is not None and k > 1:
+            body = self._to_work @ body @ self._from_work
         vectors = np.zeros((EDGE_POINTS, 2))
         width = float(np.ptp(poly[:, 0]))
         lo = np.floor(poly[:, :2].min(0) - MARGIN * width).astype(int)
@@ -130,7 +137,8 @@ class EdgeMeter:
             return vectors
         crop = image[k * y0 : k * y1, k * x0 : k * x1]
         seen = cv2.cvtColor(self._reduced(crop), cv2.COLOR_BGR2GRAY)
-        shown = cv2.cvtColor(self.surround.warp(poly, camera, (x0, y0, x1, y1)), cv2.COLOR_BGR2GRAY)
+        surroundings = self.surround.warp(poly, camera, (x0, y0, x1, y1), body)
+        shown = cv2.cvtColor(surroundings, cv2.COLOR_BGR2GRAY)
         flow = self._flow.calc(seen, shown, np.zeros((*seen.shape, 2), np.float32))
         at = (edge_points(poly) - (x0, y0)).astype(np.float32)
         inside = (at >= 0).all(1) & (at[:, 0] <= x1 - x0 - 1) & (at[:, 1] <= y1 - y0 - 1)

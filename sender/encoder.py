@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from facewire.models.body import BODY, BODY_SIZE, body_step
 from facewire.models.camera import (
     CAMERA,
     CAMERA_SIZE,
@@ -53,8 +54,9 @@ from facewire.protocol import mesh_code
 from facewire.protocol.channels import ChannelEncoder, ChannelSpec
 from facewire.protocol.constants import CALL, UINT32_MAX
 from facewire.protocol.images import decode_image
-from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
+from facewire.protocol.packets import DeltaFrame, KeyFrame, Refresh, RemPatch, Snapshot
 from facewire.protocol.quant import dequantise, quantise
+from facewire.sender.body_motion import BodyTracker
 from facewire.sender.camera_motion import CameraTracker
 from facewire.sender.capture import CapturedFrame
 from facewire.sender.channel_filter import ChannelSmoother
@@ -62,7 +64,8 @@ from facewire.sender.edge import EdgeMeter
 from facewire.sender.fit_residual import FitResidual
 from facewire.sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from facewire.sender.lift import MarkerFaceTracker, MarkerFit
-from facewire.sender.rate_cap import EDGE_KBPS, GEOMETRY_KBPS, RateCap
+from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
+from facewire.sender.refresh import REFRESH_KBPS, RefreshMeter
 from facewire.sender.rem import RemEncoder
 from facewire.sender.scene_cut import SceneCut, another_face, face_box
 from facewire.sender.synthesis import FaceSynthesis
@@ -142,7 +145,11 @@ class FaceEncoder:
     tracked landmarks are moved to where the face the receiver draws matches the frame before
     they are fitted (:mod:`facewire.sender.synthesis`). With ``edge`` (the default) each packet
     carries the corrections that put the face's edge and surroundings where the frame shows
-    them (:mod:`facewire.sender.edge`); without, they stay zero.
+    them (:mod:`facewire.sender.edge`); without, they stay zero. With ``body`` (the default)
+    the person's body below the head is followed (:mod:`facewire.sender.body_motion`), and
+    the receiver moves it so; without, it moves with the scene. With ``refresh`` (the default)
+    what the receiver's picture misses for a while around the face (a hand, an object, the
+    scene uncovered) is sent as it is (:mod:`facewire.sender.refresh`).
     """
 
     def __init__(
@@ -162,6 +169,10 @@ class FaceEncoder:
         edge: bool = True,
         edge_kbps: float | None = EDGE_KBPS,
         scenes: bool = True,
+        body: bool = True,
+        body_kbps: float | None = BODY_KBPS,
+        refresh: bool = True,
+        refresh_kbps: float = REFRESH_KBPS,
     ) -> None:
         self.width, self.height, self.fps = width, height, fps
         self.tracker: LandmarkTracker | MarkerFaceTracker = tracker or LandmarkTracker()
@@ -185,6 +196,14 @@ class FaceEncoder:
         self._last_values: dict[str, np.ndarray] | None = None
         self.camera: CameraTracker | None = None
         self._camera_shift = np.zeros(CAMERA_SIZE)
+        self.use_body = body
+        #: The body's motion below the head (None: not followed, it moves with the scene).
+        self.body: BodyTracker | None = None
+        self._body_shift = np.zeros(BODY_SIZE)
+        #: The body's own rate cap (None: its values change whenever they are measured).
+        self.body_cap = None if body_kbps is None else RateCap(body_kbps, fps)
+        #: Bytes of the frame packets that were the body's share.
+        self.body_bytes = 0.0
         self.frames_untracked = 0
         self.values_clipped = 0
         self.smoothing = smoothing
@@ -200,7 +219,11 @@ class FaceEncoder:
         self.points: np.ndarray | None = None
         #: Per tracked frame, the wire fit's and the sent face's distance to the tracked face.
         self.residual = FitResidual()
-        self._patches: list[RemPatch] = []
+        self._patches: list[RemPatch | Refresh] = []
+        self.use_refresh, self.refresh_kbps = refresh, refresh_kbps
+        #: What the receiver's picture misses, sent as it is (None: off).
+        self.refresh: RefreshMeter | None = None
+        self._refresh_again = False  # a receiver asked for a keyframe: send them again
         #: The frame packets' rate cap (None: every frame that changed sends).
         self.rate_cap = None if geometry_kbps is None else RateCap(geometry_kbps, fps)
         self.use_synthesis = synthesis
@@ -308,6 +331,7 @@ class FaceEncoder:
         # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
         self.steps[CAMERA] = camera_step(2 * self.budget_px)
         self.steps[EDGE] = edge_step(self.budget_px)
+        self.steps[BODY] = body_step(self.budget_px)
         specs = [
             ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
         ] + [
@@ -315,26 +339,34 @@ class FaceEncoder:
             ChannelSpec(LIPS, LIPS_SIZE, self.steps[LIPS]),
             ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
             ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
+            ChannelSpec(BODY, BODY_SIZE, self.steps[BODY]),
         ]
-        self.camera = CameraTracker(
-            frame.image, points[self.canonical.outline, :2], person_mask(frame.image)
-        )
+        people = person_mask(frame.image)
+        outline = points[self.canonical.outline, :2]
+        self.camera = CameraTracker(frame.image, outline, people)
         self._camera_shift = np.zeros(CAMERA_SIZE)
+        self.body = BodyTracker(frame.image, outline, people) if self.use_body else None
+        self._body_shift = np.zeros(BODY_SIZE)
         interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
         self._channels = ChannelEncoder(
             specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
         )
         self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
         self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
-        if self.use_edge:
+        self.refresh = None
+        if self.use_edge or self.use_refresh:
             # The receiver's surroundings, rebuilt from what it decodes.
             shown = decode_image(background_webp, "snapshot background")
+            shown_people = person_mask(shown)
             at_snapshot = self.rebuilt_vertices(self._last_values)[self.canonical.outline]
-            self.edge = EdgeMeter(
-                shown, at_snapshot, person_mask(shown), float(np.ptp(points[:, 0]))
-            )
+        if self.use_edge:
+            self.edge = EdgeMeter(shown, at_snapshot, shown_people, float(np.ptp(points[:, 0])))
             if self.smoothing:
                 self._edge_smoother = ChannelSmoother({EDGE: self.steps[EDGE]})
+        if self.use_refresh:
+            self.refresh = RefreshMeter(
+                shown, at_snapshot, shown_people, self.fps, self.refresh_kbps
+            )
         self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None
         self._depth = float(self._last_values[POSE_TRANSLATION][2] * self.steps[POSE_TRANSLATION])
@@ -440,6 +472,10 @@ class FaceEncoder:
         if self.camera is not None:
             homography = self.camera.update(image, points[self.canonical.outline, :2])
             self._camera_shift = corners_from_homography(homography, self.width, self.height)
+            if self.body is not None:
+                # Sent relative to the scene's motion: a person sitting still sends nothing.
+                body = np.linalg.solve(homography, self.body.update(image))
+                self._body_shift = corners_from_homography(body, self.width, self.height)
         return pose, params
 
     def projected(self, params: np.ndarray) -> np.ndarray:
@@ -450,7 +486,7 @@ class FaceEncoder:
         self, pose: Pose, params: np.ndarray, points: np.ndarray | None = None
     ) -> dict[str, np.ndarray]:
         """Float channel values of a pose and wire parameters (before quantisation), with the
-        camera's motion measured by the last :meth:`analyse`, and the inner lips' opening
+        camera's and the body's motion measured by the last :meth:`analyse`, the inner lips' opening
         that the wires leave on ``points`` (n, 3), the tracked face in image space (none
         without them)."""
         assert self.wires is not None and self.mouth is not None, "start() first"
@@ -461,6 +497,7 @@ class FaceEncoder:
             deformed = self.wires.deform(self.rest_params + self.basis.params(values[WIRE]))
             values[LIPS] = self.mouth.values(pose.inverse(points), deformed)
         values[CAMERA] = self._camera_shift
+        values[BODY] = self._body_shift
         return values
 
     @property
@@ -470,14 +507,16 @@ class FaceEncoder:
 
     def request_keyframe(self) -> None:
         """The next packet is a keyframe (a receiver asked for one), with every REM patch
-        sent so far again."""
+        sent so far and every refresh shown again."""
         if self._channels is not None:
             self._channels.request_keyframe()
         if self.rem is not None:
             self.rem.request_refresh()
+        self._refresh_again = True
 
-    def take_patches(self) -> list[RemPatch]:
-        """The REM patches of the last encoded frame (publish them before its frame packet)."""
+    def take_patches(self) -> list[RemPatch | Refresh]:
+        """The REM patches and refreshes of the last encoded frame (publish them before its
+        frame packet)."""
         patches, self._patches = self._patches, []
         return patches
 
@@ -526,15 +565,29 @@ class FaceEncoder:
             floats[POSE_TRANSLATION] = floats[POSE_TRANSLATION].copy()
             floats[POSE_TRANSLATION][2] = self._depth
             values = self._quantise(floats, self._last_values)
+            values[BODY] = self._quantise_own(BODY, floats[BODY], sent[BODY], self.body_cap)
             vertices = self.rebuilt_vertices(values)
-            floats[EDGE] = self._edge(frame, vertices, values)
-            values[EDGE] = self._quantise_edge(floats[EDGE], sent[EDGE])
+            # The surroundings the receiver warps: the camera's and the person's motion.
+            motion = self._homographies(values)
+            floats[EDGE] = self._edge(frame, vertices, motion)
+            values[EDGE] = self._quantise_own(EDGE, floats[EDGE], sent[EDGE], self.edge_cap)
             self.intended = floats
             self._last_values = values
         patches: list[RemPatch] = []
         if vertices is not None and self.rem is not None:
             assert self.points is not None
             patches = self.rem.changed(frame.index, frame.image, vertices, self.points)
+        # A refresh gets a frame packet to be drawn with while the geometry's cap allows, and
+        # no more (it would take the geometry past its cap): held, it shows with the next.
+        refreshes: list[Refresh] = []
+        if self.refresh is not None:
+            if self._refresh_again:
+                refreshes += self.refresh.again(frame.index)
+                self._refresh_again = False
+            if vertices is not None:
+                camera, body = motion
+                outline = vertices[self.canonical.outline]
+                refreshes += self.refresh.measure(frame.index, frame.image, outline, camera, body)
         may_send = self.rate_cap is None or self.rate_cap.next_frame()
         if not (may_send or patches or self._channels.keyframe_due(frame.index)):
             # Over the rate cap: the receiver keeps what it has (sender/rate_cap.py).
@@ -546,10 +599,11 @@ class FaceEncoder:
                 vertices = self.rebuilt_vertices(sent)
             packet = None
         else:
-            # A patch is drawn with its frame: that frame needs a packet even if nothing moved.
+            # A patch (or a refresh) is drawn with its frame: that frame needs a packet even if
+            # nothing moved.
             coded = dict(self._channels.coded_bits)
             packet, _ = self._channels.encode(
-                frame.index, frame.capture_us, self._last_values, force=bool(patches)
+                frame.index, frame.capture_us, self._last_values, force=bool(patches or refreshes)
             )
             if packet is not None:
                 self._spend(len(bytes(packet)), coded)
@@ -561,47 +615,65 @@ class FaceEncoder:
             )
         if self.rem is not None and isinstance(packet, KeyFrame):
             patches = self.rem.keyframe(frame.index, patches) + patches
-        self._patches = patches
+        self._patches = [*patches, *refreshes]
         return packet
 
     def _edge(
-        self, frame: CapturedFrame, vertices: np.ndarray, values: dict[str, np.ndarray]
+        self,
+        frame: CapturedFrame,
+        vertices: np.ndarray,
+        motion: tuple[np.ndarray, np.ndarray],
     ) -> np.ndarray:
         """(EDGE_SIZE,) the face's edge corrections for ``frame`` (smoothed over time), where
-        the receiver draws the face at ``vertices`` (n, 3) with the camera of channel
-        ``values``; zeros when they are off."""
+        the receiver draws the face at ``vertices`` (n, 3) and warps the surroundings with
+        ``motion``, the camera's and the person's homographies (:meth:`_homographies`); zeros
+        when they are off."""
         if self.edge is None:
             return np.zeros(EDGE_SIZE)
-        shift = dequantise(values[CAMERA], self.steps[CAMERA])
-        camera = homography_from_corners(shift, self.width, self.height)
-        edge = self.edge.measure(frame.image, vertices[self.canonical.outline], camera).ravel()
+        camera, body = motion
+        outline = vertices[self.canonical.outline]
+        edge = self.edge.measure(frame.image, outline, camera, body).ravel()
         if self._edge_smoother is None:
             return edge
         return self._edge_smoother({EDGE: edge}, frame.index / self.fps)[EDGE]
 
-    def _quantise_edge(self, floats: np.ndarray, sent: np.ndarray) -> np.ndarray:
-        """The edge corrections' values: ``sent`` kept while their bucket is empty, and a
-        wider hysteresis as it runs low (as the face's under the geometry's cap)."""
-        if self.edge_cap is None:
-            return quantise(floats, self.steps[EDGE], sent, HYSTERESIS)[0]
-        if not self.edge_cap.next_frame():
+    def _homographies(self, values: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's and the person's (3, 3) homographies the receiver makes of quantised
+        channel ``values`` (models/camera.py, models/body.py)."""
+        shift = dequantise(values[CAMERA], self.steps[CAMERA])
+        camera = homography_from_corners(shift, self.width, self.height)
+        body = dequantise(values[BODY], self.steps[BODY])
+        return camera, camera @ homography_from_corners(body, self.width, self.height)
+
+    def _quantise_own(
+        self, name: str, floats: np.ndarray, sent: np.ndarray, cap: RateCap | None
+    ) -> np.ndarray:
+        """The values of a channel with a bucket of its own (the edge's corrections, the
+        body's motion): ``sent`` kept while it is empty, and a wider hysteresis as it runs
+        low (as the face's under the geometry's cap)."""
+        if cap is None:
+            return quantise(floats, self.steps[name], sent, HYSTERESIS)[0]
+        if not cap.next_frame():
             return sent
-        slack = self.edge_cap.slack()
-        return quantise(floats, self.steps[EDGE], sent, HYSTERESIS + slack)[0]
+        return quantise(floats, self.steps[name], sent, HYSTERESIS + cap.slack())[0]
 
     def _spend(self, nbytes: int, coded_before: dict[str, float]) -> None:
         """Take a sent frame packet's ``nbytes`` from the rate caps: the edge corrections'
-        share of the bits coded in it (``coded_before``: the channel coder's counts before
-        it) from their bucket, the rest from the geometry's."""
+        and the body's shares of the bits coded in it (``coded_before``: the channel coder's
+        counts before it) from their buckets, the rest from the geometry's."""
         assert self._channels is not None  # a packet was coded
         added = {k: v - coded_before.get(k, 0.0) for k, v in self._channels.coded_bits.items()}
         total = sum(added.values())
         edge = nbytes * added.get(EDGE, 0.0) / total if total > 0 else 0.0
+        body = nbytes * added.get(BODY, 0.0) / total if total > 0 else 0.0
         self.edge_bytes += edge
+        self.body_bytes += body
         if self.edge_cap is not None:
             self.edge_cap.spend(edge)
+        if self.body_cap is not None:
+            self.body_cap.spend(body)
         if self.rate_cap is not None:
-            self.rate_cap.spend(nbytes - edge)
+            self.rate_cap.spend(nbytes - edge - body)
 
     def _quantise(
         self, floats: dict[str, np.ndarray], previous: dict[str, np.ndarray] | None

@@ -20,6 +20,7 @@ from facewire.protocol.packets import (
     KeyframeRequest,
     Packet,
     ReceiverStats,
+    Refresh,
     RemPatch,
     Snapshot,
 )
@@ -34,8 +35,8 @@ logger = logging.getLogger(__name__)
 FramePacket = KeyFrame | DeltaFrame
 #: How often the REM patches' budget follows the link's (frames).
 BUDGET_EVERY_FRAMES = 15
-#: What the sender publishes per frame: its REM patches, then its frame packet.
-UpdatePacket = KeyFrame | DeltaFrame | RemPatch
+#: What the sender publishes per frame: its REM patches and refreshes, then its frame packet.
+UpdatePacket = KeyFrame | DeltaFrame | RemPatch | Refresh
 
 
 @dataclass
@@ -45,6 +46,7 @@ class SenderReport:
     frames_in: int = 0
     packets: int = 0  # frame packets handed to the link (no packet: nothing changed)
     patches: int = 0  # REM patches handed to the link
+    refreshes: int = 0  # refreshes of what the model misses (sender/refresh.py) handed to it
     keyframe_requests: int = 0
     # Sessions started at a cut to another scene, and the capture time of each one's first
     # frame (µs, this end's clock).
@@ -124,7 +126,10 @@ def run_sender(
                 endpoint.publish(patch)
             else:
                 publish(patch)
-            report.patches += 1
+            if isinstance(patch, Refresh):
+                report.refreshes += 1
+            else:
+                report.patches += 1
         if packet is not None:  # None: nothing visible changed since the last packet
             if publish is None:  # with the frame number for heartbeats (a delta has none)
                 endpoint.publish(packet, seq=frame.index)

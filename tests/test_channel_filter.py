@@ -91,7 +91,14 @@ def _encode(frames: list, smoothing: bool) -> tuple[int, list[float], list[float
     h, w = frames[0].image.shape[:2]
     # No rate caps: they would hold the unsmoothed call's values back and hide what it costs.
     encoder = FaceEncoder(
-        w, h, FPS, session_id=1, smoothing=smoothing, geometry_kbps=None, edge_kbps=None
+        w,
+        h,
+        FPS,
+        session_id=1,
+        smoothing=smoothing,
+        geometry_kbps=None,
+        edge_kbps=None,
+        body_kbps=None,
     )
     snapshot = encoder.start(frames[0])
     assert snapshot is not None

@@ -177,8 +177,10 @@ def test_the_wheel_is_one_package_that_runs_the_demo_and_the_build_warns_of_noth
         "print([bool(u.find_spec(n)) for n in ('facewire.sender', 'facewire.receiver', "
         "'facewire.protocol', 'facewire.models', 'sender', 'receiver', 'protocol', 'models')])\n"
     )
+    # Without PYTHONPATH: a checkout put on it (a worktree's tests) would be found instead.
+    env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "PYTHONPATH": ""}
     found = subprocess.run(
-        [python, "-c", where], cwd=tmp_path, capture_output=True, text=True, timeout=60
+        [python, "-c", where], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60
     )
     assert found.stdout.strip() == str([True] * 4 + [False] * 4), found.stdout + found.stderr
     # The installed wheel runs the demo outside the checkout. Its dependencies come from this
@@ -188,7 +190,6 @@ def test_the_wheel_is_one_package_that_runs_the_demo_and_the_build_warns_of_noth
     site = Path(subprocess.check_output([python, "-c", ask], text=True).strip())
     deps = [p for p in sys.path if p.endswith("site-packages")]
     (site / "facewire-test-deps.pth").write_text("\n".join(deps) + "\n")
-    env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "PYTHONPATH": ""}
     demo = subprocess.run(
         [str(venv / "bin" / "facewire"), "demo", "--frames", "20", "--no-sound",
          "--stats", "demo.json"],

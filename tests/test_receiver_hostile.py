@@ -85,7 +85,7 @@ def test_the_receive_loop_counts_it_as_malformed(decoder: FaceDecoder, snapshot:
 
 @settings(max_examples=25, deadline=None)
 @given(
-    st.sampled_from(["pose.rotation", "pose.scale", "pose.translation", "wire", "camera"]),
+    st.sampled_from(["pose.rotation", "pose.scale", "pose.translation", "wire", "camera", "body"]),
     st.integers(0, 15),
     st.one_of(st.integers(-(2**24), 2**24), st.sampled_from([2**24, -(2**24), 2**17, -(2**17)])),
 )

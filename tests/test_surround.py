@@ -268,6 +268,39 @@ def test_the_person_layer_ends_at_the_frame_edge() -> None:
     assert red(out)[34:60, 225:255].mean() > 0.95
 
 
+def test_the_body_moves_the_person_below_the_head_and_the_scene_stays() -> None:
+    """The person leans back: head and body shrink to 0.8 about the face's centre. The body
+    shrinks with the body's similarity (beyond the head's reach too), still reaching the
+    frame's bottom edge; the stripes beside it stay where they were."""
+    image, person = person_scene()
+    o = outline()
+    centre = o.mean(0)
+    body = np.array([[0.8, 0.0, 0.2 * centre[0]], [0.0, 0.8, 0.2 * centre[1]], [0.0, 0.0, 1.0]])
+    now = centre + 0.8 * (o - centre)
+    out = SurroundWarp(image, o, person).warp(now, body=body)
+    still = SurroundWarp(image, o, person).warp(now)
+    # The body was 150..330 wide: now 168..312 (0.8 about x = 240).
+    row = np.s_[290:340]
+    assert red(out)[row, 176:304].mean() > 0.95
+    assert red(out)[row, 150:162].mean() < 0.05 and red(out)[row, 318:330].mean() < 0.05
+    assert red(still)[row, 150:162].mean() > 0.95  # without it the body stays as big
+    # It goes on past the bottom edge, which it reached in the snapshot frame.
+    assert red(out)[H - 12 :, 176:304].mean() > 0.95
+    # Beside the body, beyond the head's reach, the scene has not moved.
+    beside = np.s_[250:H, 360:470]
+    assert np.abs(out[beside].astype(int) - image[beside]).mean() < 1.0
+
+
+def test_a_body_moving_with_the_camera_is_the_camera_alone() -> None:
+    image, person = person_scene()
+    o = outline()
+    warp = SurroundWarp(image, o, person)
+    camera = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0], [0.0, 0.0, 1.0]])
+    assert np.array_equal(
+        warp.warp(o + [6.0, -4.0], camera, body=camera), warp.warp(o + [6.0, -4.0], camera)
+    )
+
+
 def test_a_face_in_a_large_frame_is_warped_as_in_a_small_one_and_the_rest_is_the_frame() -> None:
     # Only the head's reach is warped pixel by pixel: the same small frame with its edges
     # repeated out to 1280x720 (on the spline's grid) warps as the small one does, and beyond
@@ -301,3 +334,58 @@ def test_a_camera_that_moves_again_moves_the_picture_again() -> None:
         assert np.array_equal(warp.warp(now, camera), want)
         part = warp.warp(now, camera, (10, 20, 300, 250)).astype(int)
         assert np.abs(part - want[20:250, 10:300]).max() <= 1  # as any box (above)
+
+
+def test_a_body_that_moves_again_moves_the_person_again() -> None:
+    # The person moved by the body over the scene moved by the camera is kept while both
+    # stay: a frame after either moved on (or back) is what a fresh warp draws for it.
+    image, person = person_scene()
+    warp = SurroundWarp(image, outline(), person)
+    now = outline() + [5.0, 2.0]
+
+    def shift(dx: float, dy: float) -> np.ndarray:
+        return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+    still, panned, leaned, other = np.eye(3), shift(4.0, -2.0), shift(3.0, 4.0), shift(-2.0, 6.0)
+    moves = [(still, leaned), (still, leaned), (panned, leaned), (panned, other), (still, still),
+             (still, leaned)]  # fmt: skip
+    for camera, body in moves:
+        want = SurroundWarp(image, outline(), person).warp(now, camera, body=body)
+        assert np.array_equal(warp.warp(now, camera, body=body), want)
+        part = warp.warp(now, camera, (10, 20, 300, 250), body).astype(int)
+        assert np.abs(part - want[20:250, 10:300]).max() <= 1
+    # A moved body shows: beyond the head's reach the person is not where it was.
+    moved = warp.warp(now, body=shift(0.0, 12.0)).astype(int)
+    assert np.abs(moved - warp.warp(now).astype(int)).max() > 50
+
+
+def test_a_head_following_control_carried_onto_a_held_one_does_not_fold_the_warp() -> None:
+    """The head drops until a point of the still ring that follows it (beside the eyes) lands
+    1 px from its neighbour held with the shoulders: the two need displacements 27 px apart.
+    A spline through both folds (on Claire's shoulder, a blob of the wall behind; here pixels
+    from 90 px away): no output pixel may show a snapshot pixel from much further away than
+    the head moved, and the map stays one-to-one (its Jacobian positive) all over the frame.
+    The hair still follows."""
+    image, person = person_scene()
+    o = outline(k=72)
+    warp = SurroundWarp(image, o, person)
+    k = len(o)
+    moved, then = warp.controls(o + [0.0, 1.0])
+    follows = (moved - then)[2 * k :, 1] > 0.99
+    held = (moved - then)[2 * k :, 1] < 0.01
+    ring = then[2 * k :]
+    # The following point nearest a held one, and the head's shift that lands it next to it.
+    gaps = np.hypot(*(ring[follows][:, None] - ring[held][None]).transpose(2, 0, 1))
+    i, j = np.unravel_index(np.argmin(gaps), gaps.shape)
+    shift = ring[held][j] + [1.0, 0.0] - ring[follows][i]
+    assert np.hypot(*shift) > 25.0
+    map_x, map_y = warp.source_map(o + shift)
+    xs, ys = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    assert np.hypot(map_x - xs, map_y - ys).max() <= 1.5 * np.hypot(*shift)
+    dxx, dxy = np.gradient(map_x, axis=1), np.gradient(map_x, axis=0)
+    dyx, dyy = np.gradient(map_y, axis=1), np.gradient(map_y, axis=0)
+    assert (dxx * dyy - dxy * dyx).min() > 0.0
+    centre = o.mean(0)
+    for q in (centre + 1.3 * (o - centre))[[54, 48, 60]]:  # hair above and beside
+        x, y = np.round(q + shift).astype(int)
+        assert np.allclose([map_x[y, x], map_y[y, x]], q, atol=3.0), q

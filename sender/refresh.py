@@ -1,0 +1,274 @@
+"""Parts of the camera's picture the model cannot show, sent as they are (Refresh packets).
+
+The receiver's picture is the snapshot frame warped (models/surround.py) with the face drawn
+over it. What that frame never showed (a hand raised to the chin, an object held up, the
+scene a person uncovers, a light switched on) it cannot show. The sender rebuilds the
+receiver's surroundings as it does for the face's edge (no drawing, on the frame reduced to
+about 120 pixels wide, every fourth frame: 0.13 s is soon enough, and the
+sender has 16 ms a frame in all) and compares them with its frame in blocks, leaving out the
+drawn face. Each pixel's difference is the least over shifts of up to :data:`SLACK` pixels, so
+hair or a shoulder a pixel or two off (which the warp leaves, and the edge's corrections
+mend) does not count; a block whose mean difference stays above :data:`DIFF_LEVEL` for
+:data:`PERSIST_S` is the model's failure, not a moment's. The largest group of such blocks,
+grown by a block, is cut from the frame and sent as a WebP image of that area; the receiver
+shows it over its surroundings (under the face) from then on, and the sender compares
+against the picture with it. Where the model matches the frame again under a refresh (the
+hand went down), the area is given back to the model with an empty one, whatever the
+bucket holds; so is a refresh that no longer matches while the bucket cannot pay for a new
+one (the head moved on: frozen, it showed a piece of the head where it was). The images are
+paid from a token bucket of their own (:data:`REFRESH_KBPS`, with two seconds of credit: the
+first one goes at once, the ones after wait for its debt).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from facewire.models.refresh import RefreshLayer
+from facewire.models.surround import SurroundWarp
+from facewire.protocol.images import decode_image
+from facewire.protocol.packets import Refresh
+from facewire.sender.rate_cap import RateCap
+
+logger = logging.getLogger(__name__)
+
+#: Payload budget of the refreshes, kbit/s: with the geometry's 1.5, the edge's 0.75, the body's
+#: 0.25 and the REM patches' 3.7 at most, 7.7: a call within 8 kbit/s whatever happens.
+REFRESH_KBPS = 1.5
+#: Seconds of budget the bucket holds (and starts with).
+BUCKET_S = 2.0
+#: The comparison's frame is reduced by a whole factor to about this width, pixels.
+WORK_WIDTH = 120
+#: The comparison is made every this many frames.
+EVERY = 4
+#: Blocks of the comparison, work pixels on a side.
+BLOCK = 8
+#: Work pixels of misplacement forgiven: the difference is the least over these shifts.
+SLACK = 2
+#: A block is the model's failure where its mean luma difference is above this (0-255) ...
+DIFF_LEVEL = 28.0
+#: ... for this long, seconds ...
+PERSIST_S = 0.25
+#: ... in a group of at least this many blocks: a block or two failing is most often hair or
+#: an ear a few pixels off as the head turns, and a refresh of it goes stale as it moves on.
+MIN_BLOCKS = 4
+_CHANNEL_MEAN = np.full((1, 3), 1.0 / 3.0, np.float32)
+#: A refresh's image is at most this many pixels (scaled down if larger) ...
+MAX_PIXELS = 64 * 64
+#: ... at this WebP quality.
+QUALITY = 60
+
+
+@dataclass
+class _Shown:
+    """A refresh the receiver shows, and its area in work blocks."""
+
+    packet: Refresh
+    blocks: tuple[int, int, int, int]  # column, row, end column, end row
+
+
+class RefreshMeter:
+    """Finds what the receiver's picture misses, frame by frame, for one session.
+
+    background : (h, w, 3) uint8, the snapshot frame as the receiver decoded it
+    outline : (k, 3) the face's outline in it, as the receiver rebuilds the snapshot's values
+    person : (h, w) float, the person mask the receiver makes of it (models.person)
+    """
+
+    def __init__(
+        self,
+        background: np.ndarray,
+        outline: np.ndarray,
+        person: np.ndarray,
+        fps: float,
+        kbps: float = REFRESH_KBPS,
+    ) -> None:
+        self.height, self.width = background.shape[:2]
+        self.reduce = k = max(1, self.width // WORK_WIDTH)
+        shift = 0.5 / k - 0.5
+        self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])
+        self._from_work = np.linalg.inv(self._to_work)
+        work = self._reduced(background)
+        self.size = (work.shape[1], work.shape[0])
+        self.surround = SurroundWarp(
+            work, self._work(outline), self._reduced(person.astype(np.float32))
+        )
+        self.cols, self.rows = self.size[0] // BLOCK, self.size[1] // BLOCK
+        self._failing = np.zeros((self.rows, self.cols), np.int32)
+        self._persist = max(1, round(PERSIST_S * fps / EVERY))
+        self._frames = 0
+        self.bucket = RateCap(kbps, fps, BUCKET_S)
+        self.bucket.tokens = self.bucket.capacity
+        #: What the receiver shows over its surroundings, as it shows it.
+        self.layer = RefreshLayer(*self.size)
+        self._shown: list[_Shown] = []
+        #: Bytes of the refreshes sent.
+        self.bytes = 0
+
+    def _reduced(self, image: np.ndarray) -> np.ndarray:
+        k = self.reduce
+        if k == 1:
+            return image
+        h, w = image.shape[:2]
+        whole = image[: h - h % k, : w - w % k]
+        return cv2.resize(whole, (w // k, h // k), interpolation=cv2.INTER_AREA)
+
+    def _work(self, points: np.ndarray) -> np.ndarray:
+        out = np.array(points, dtype=np.float64)
+        out[:, :2] = out[:, :2] @ self._to_work[:2, :2].T + self._to_work[:2, 2]
+        if out.shape[1] > 2:
+            out[:, 2] /= self.reduce
+        return out
+
+    def _in_work(self, homography: np.ndarray | None) -> np.ndarray | None:
+        if homography is None or self.reduce == 1:
+            return homography
+        return self._to_work @ homography @ self._from_work
+
+    def measure(
+        self,
+        seq: int,
+        image: np.ndarray,
+        outline: np.ndarray,
+        camera: np.ndarray | None,
+        body: np.ndarray | None,
+    ) -> list[Refresh]:
+        """The refreshes of frame ``seq`` (``image``, (h, w, 3) BGR), where the receiver draws
+        the face's outline at ``outline`` (k, 3) with the camera's and the body's homographies
+        (models/surround.py); none while the bucket is in debt or nothing fails."""
+        can_send = self.bucket.next_frame()
+        self._frames += 1
+        if (self._frames - 1) % EVERY:
+            return []
+        poly = self._work(outline)
+        model = self.surround.warp(poly, self._in_work(camera), body=self._in_work(body))
+        shown = self.layer.over(model.copy(), poly[:, :2])
+        seen = self._reduced(image)
+        failing = self._blocks(seen, shown) > DIFF_LEVEL
+        face = self._face_blocks(poly)
+        failing &= ~face
+        self._failing = np.where(failing, self._failing + 1, 0)
+        due = self._failing >= self._persist
+        if not due.any():
+            return []
+        (c0, r0, c1, r1), size = self._largest(due)
+        # Where the model alone matches the frame, a refresh there is only in the way; and one
+        # that no longer matches and cannot be replaced now is older than the model's picture
+        # (a head that moved on): either goes (a few bytes, whatever the bucket holds).
+        model_fails = (self._blocks(seen, model) > DIFF_LEVEL) & ~face
+        under = [s for s in self._shown if _overlap(s.blocks, (c0, r0, c1, r1))]
+        replace = can_send and size >= MIN_BLOCKS
+        if under and not (replace and model_fails[r0:r1, c0:c1].any()):
+            packets = [self._clear(seq, s) for s in under]
+        elif replace:
+            packets = [self._cut(seq, image, (c0, r0, c1, r1))]
+        else:
+            return []
+        self._failing[r0:r1, c0:c1] = 0
+        for packet in packets:
+            self.bucket.spend(len(bytes(packet)))
+            self.bytes += len(bytes(packet))
+        return packets
+
+    def again(self, seq: int) -> list[Refresh]:
+        """What the receiver should show from frame ``seq`` on, whatever it lost: the whole
+        frame given back to the model, then every refresh shown now (sent when it asks for a
+        keyframe; a lost refresh, or a lost empty one, is put right)."""
+        everything = Refresh(seq, 0, 0, self.width, self.height, "", b"")
+        # All of frame ``seq``: shown in this order whatever frame the receiver draws next.
+        shown = [dataclasses.replace(s.packet, seq=seq) for s in self._shown]
+        return [everything, *shown]
+
+    def _blocks(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(rows, cols) mean absolute difference of two work images (BGR, its channels'
+        mean), per block: at each pixel the larger of the least difference of ``a`` to ``b``
+        shifted by up to SLACK pixels and of ``b`` to ``a`` shifted (one way only, a texture
+        in the one shifted would find a near match for a flat colour in the other)."""
+        fa, fb = cv2.blur(a, (3, 3)), cv2.blur(b, (3, 3))
+        diff = cv2.max(_least(fa, fb), _least(fb, fa))
+        diff = diff[: self.rows * BLOCK, : self.cols * BLOCK]
+        return cv2.resize(diff, (self.cols, self.rows), interpolation=cv2.INTER_AREA)
+
+    def _face_blocks(self, poly: np.ndarray) -> np.ndarray:
+        """(rows, cols) bool: blocks whose centre the drawn face covers."""
+        mask = np.zeros((self.rows, self.cols), np.uint8)
+        scaled = (poly[:, :2] / BLOCK - 0.5).round().astype(np.int32)
+        cv2.fillPoly(mask, [scaled], 1)
+        return mask.astype(bool)
+
+    def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
+        """Blocks (column, row, end column, end row) around the largest group of ``due``
+        blocks, grown by one, and how many blocks the group has."""
+        _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), connectivity=8)
+        best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        x, y, w, h, size = (int(v) for v in stats[best, :5])
+        box = (max(0, x - 1), max(0, y - 1), min(self.cols, x + w + 1), min(self.rows, y + h + 1))
+        return box, size
+
+    def _area(self, blocks: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        """Frame pixels (x, y, width, height) of work blocks."""
+        c0, r0, c1, r1 = blocks
+        k = BLOCK * self.reduce
+        x, y = c0 * k, r0 * k
+        return x, y, min(self.width, c1 * k) - x, min(self.height, r1 * k) - y
+
+    def _cut(self, seq: int, image: np.ndarray, blocks: tuple[int, int, int, int]) -> Refresh:
+        x, y, w, h = self._area(blocks)
+        part = image[y : y + h, x : x + w]
+        scale = min(1.0, float(np.sqrt(MAX_PIXELS / (w * h))))
+        if scale < 1.0:
+            size = (max(1, round(w * scale)), max(1, round(h * scale)))
+            part = cv2.resize(part, size, interpolation=cv2.INTER_AREA)
+        ok, data = cv2.imencode(".webp", part, [cv2.IMWRITE_WEBP_QUALITY, QUALITY])
+        if not ok:
+            raise RuntimeError("WebP encoding failed")
+        packet = Refresh(seq, x, y, w, h, "webp", data.tobytes())
+        self._shown = [s for s in self._shown if not _overlap(s.blocks, blocks)]
+        self._shown.append(_Shown(packet, blocks))
+        self._show(packet)
+        logger.debug("refresh at frame %d: %dx%d px, %d bytes", seq, w, h, len(packet.data))
+        return packet
+
+    def _clear(self, seq: int, shown: _Shown) -> Refresh:
+        old = shown.packet
+        packet = Refresh(seq, old.x, old.y, old.width, old.height, "", b"")
+        self._shown.remove(shown)
+        self._show(packet)
+        return packet
+
+    def _show(self, packet: Refresh) -> None:
+        """Keep the work-size picture of what the receiver shows up to date."""
+        k = self.reduce
+        x0, y0 = packet.x // k, packet.y // k
+        x1 = min(self.size[0], -(-(packet.x + packet.width) // k))
+        y1 = min(self.size[1], -(-(packet.y + packet.height) // k))
+        if x1 <= x0 or y1 <= y0:
+            return
+        image = None if packet.clears else decode_image(packet.data, "refresh")  # as received
+        self.layer.add(packet.seq, x0, y0, x1 - x0, y1 - y0, image)
+        self.layer.due(packet.seq)
+
+
+def _least(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(h, w) float32: at each pixel of ``a`` (h, w, 3) uint8 the least mean absolute
+    difference over its channels to ``b`` shifted by up to SLACK pixels either way."""
+    s = SLACK
+    padded = cv2.copyMakeBorder(b, s, s, s, s, cv2.BORDER_REPLICATE)
+    h, w = a.shape[:2]
+    least = None
+    for dy in (-s, 0, s):
+        for dx in (-s, 0, s):
+            moved = np.ascontiguousarray(padded[s + dy : s + dy + h, s + dx : s + dx + w])
+            diff = cv2.transform(cv2.absdiff(a, moved), _CHANNEL_MEAN)
+            least = diff if least is None else cv2.min(least, diff)
+    assert least is not None
+    return least
+
+
+def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]

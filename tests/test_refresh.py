@@ -1,0 +1,137 @@
+"""Refreshes: what the model's picture misses for a while (an object held up beside the face)
+is sent as the camera saw it, shown from then on, and given back when it is gone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from imaging import save
+
+from facewire.models.refresh import RefreshLayer
+from facewire.protocol.packets import PacketError, Refresh, decode
+
+FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
+SIDE = 320
+
+
+def _webp(image: np.ndarray) -> bytes:
+    ok, data = cv2.imencode(".webp", image, [cv2.IMWRITE_WEBP_QUALITY, 90])
+    assert ok
+    return data.tobytes()
+
+
+def test_a_refresh_and_a_clear_round_trip() -> None:
+    image = _webp(np.full((6, 8, 3), 200, np.uint8))
+    shown = Refresh(12, 30, 40, 16, 12, "webp", image)
+    again = decode(bytes(shown))
+    assert isinstance(again, Refresh) and bytes(again) == bytes(shown)
+    assert (again.seq, again.x, again.y, again.width, again.height) == (12, 30, 40, 16, 12)
+    assert again.data == image and not again.clears
+    cleared = decode(bytes(Refresh(13, 30, 40, 16, 12, "", b"")))
+    assert isinstance(cleared, Refresh) and cleared.clears and bytes(cleared)[0] == 0x2C
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ((1, 0, 0, 8, 8, "gif", b"x"), "Refresh.codec: unknown codec 'gif'"),
+        ((1, 0, 0, 8, 8, "", b"x"), "Refresh.data: an image needs a codec"),
+        ((1, 0, 0, 8, 8, "webp", b""), "Refresh.data: must not be empty"),
+        ((1, 4096, 0, 8, 8, "", b""), "Refresh.x"),
+        ((1, 0, 0, 0, 8, "", b""), "Refresh.width"),
+    ],
+)
+def test_a_bad_refresh_is_refused(fields: tuple, message: str) -> None:
+    with pytest.raises(PacketError, match=message):
+        Refresh(*fields)
+
+
+def test_the_layer_shows_refreshes_from_their_frame_and_replaces_or_clears_them() -> None:
+    layer = RefreshLayer(64, 48)
+    white, black = np.full((4, 4, 3), 255, np.uint8), np.zeros((4, 4, 3), np.uint8)
+    grey = np.full((48, 64, 3), 100, np.uint8)
+    layer.add(5, 10, 10, 20, 20, white)
+    layer.due(4)
+    assert np.array_equal(layer.over(grey.copy()), grey)  # not its frame yet
+    layer.due(5)
+    shown = layer.over(grey.copy())
+    assert shown[20, 20].tolist() == [255, 255, 255]  # its middle is the image
+    assert shown[10, 10].tolist() != [255, 255, 255] and shown[5, 5].tolist() == [100] * 3
+    layer.add(6, 15, 15, 20, 20, black)  # overlaps: takes its place
+    layer.due(6)
+    assert len(layer) == 1 and layer.over(grey.copy())[25, 25].tolist() == [0, 0, 0]
+    layer.add(7, 0, 0, 64, 48, None)  # the model's picture again
+    layer.due(7)
+    assert len(layer) == 0 and np.array_equal(layer.over(grey.copy()), grey)
+    with pytest.raises(ValueError, match="outside the picture"):
+        layer.add(8, 60, 0, 8, 8, None)
+
+
+@pytest.fixture(scope="module")
+def photo() -> np.ndarray:
+    return cv2.resize(cv2.imread(str(FIXTURE)), (SIDE, SIDE), interpolation=cv2.INTER_AREA)
+
+
+def test_an_object_held_beside_the_face_is_shown_within_a_second_and_goes_with_it(
+    photo: np.ndarray,
+) -> None:
+    """A striped object (the photo's flag) is held beside the chin from frame 10 to 39 over a
+    still person: within 30 frames (1 s) of its coming the receiver shows it, and within 30
+    of its going the scene is back, given back to the model (no image: a few bytes). Before
+    it came nothing was sent."""
+    from facewire.loopback import Loopback
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
+
+    flag = cv2.resize(photo[80:200, 0:50], (40, 60), interpolation=cv2.INTER_AREA)
+    x, y = 215, 120  # beside the chin, over the shuttle's scene
+    held = photo.copy()
+    held[y : y + 60, x : x + 40] = flag
+    frames = [photo] * 10 + [held] * 30 + [photo] * 30
+    encoder = FaceEncoder(SIDE, SIDE, 30.0)
+    errors, sent = [], {}
+    with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as call:
+        for i, frame in enumerate(frames):
+            call.step(CapturedFrame(i, frame, i * 33_333))
+            picture = call.picture()
+            area = np.s_[y : y + 60, x : x + 40]
+            errors.append(float(np.abs(picture[area].astype(int) - frame[area]).mean()))
+            if i in (9, 39):
+                assert encoder.refresh is not None
+                sent[i] = encoder.refresh.bytes
+            if i in (9, 25, 39, 55):
+                save(f"refresh_{i:02d}.png", np.hstack([frame, picture]))
+    assert sent[9] == 0
+    assert errors[9] < 15 and errors[10] > 40  # the object came, and the model lacks it
+    shown = next(i for i in range(10, 40) if errors[i] < 15)
+    assert shown < 40, np.round(errors)
+    assert max(errors[shown:40]) < 15  # and stays
+    gone = next((i for i in range(40, 70) if errors[i] < 15), None)
+    assert gone is not None, np.round(errors)
+    assert max(errors[gone:]) < 15
+    assert encoder.refresh is not None and encoder.refresh.bytes - sent[39] < 40
+
+
+def test_a_receiver_that_asks_for_a_keyframe_gets_the_refreshes_again(photo: np.ndarray) -> None:
+    """A lost refresh, or a lost empty one, is put right at the next keyframe a receiver asks
+    for: the whole frame given back to the model, then every refresh shown, all of that
+    frame, so the receiver applies them in that order."""
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
+
+    held = photo.copy()
+    held[120:180, 215:255] = cv2.resize(photo[80:200, 0:50], (40, 60))
+    encoder = FaceEncoder(SIDE, SIDE, 30.0)
+    assert encoder.start(CapturedFrame(0, photo, 0), seq=0) is not None
+    for i in range(1, 20):
+        encoder.encode(CapturedFrame(i, held, i * 33_333))
+        encoder.take_patches()
+    assert encoder.refresh is not None and len(encoder.refresh.layer) == 1
+    encoder.request_keyframe()
+    encoder.encode(CapturedFrame(20, held, 20 * 33_333))
+    again = [p for p in encoder.take_patches() if isinstance(p, Refresh)]
+    assert [(p.seq, p.clears) for p in again] == [(20, True), (20, False)]
+    assert (again[0].x, again[0].y, again[0].width, again[0].height) == (0, 0, SIDE, SIDE)
