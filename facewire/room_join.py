@@ -8,6 +8,9 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
+    from facewire.protocol.packets import Snapshot
     from facewire.room_peer import Peer
 
 #: Messages kept of a peer whose decoder is being built, decoded once it is (10 s and more of
@@ -17,11 +20,10 @@ JOIN_BACKLOG = 512
 
 class Joining:
     """A newcomer being joined on a thread of its own: its snapshot read from the room's
-    bucket and opened, a keyframe asked for, its decoder built (``build``, which returns
-    None when the bucket has no snapshot of it yet). Building a decoder takes 0.3 s on a quiet
-    machine and over a second on a loaded one (the renderer's shaders, the wire deformer);
-    done on the receiving loop, everyone else's pictures froze that long whenever someone
-    joined. The newcomer's messages wait in :attr:`backlog` until it is ready; ``ready`` is
+    bucket and opened, and a keyframe asked for (``build``, which leaves :attr:`snapshot` None
+    when the bucket has none of it yet). Read on the receiving loop, a relay slow to answer
+    froze everyone else's pictures meanwhile; the decoder is then built on that loop (GL on
+    one thread). The newcomer's messages wait in :attr:`backlog` until it is ready; ``ready`` is
     called (on the joining thread) when it is, or when it failed (:attr:`error`)."""
 
     def __init__(
@@ -35,6 +37,9 @@ class Joining:
         self.kid = kid
         self.backlog: deque[tuple[str, bytes, int]] = deque(maxlen=JOIN_BACKLOG)
         self.peer: Peer | None = None
+        #: What ``build`` read: the newcomer's snapshot, and where its recording goes.
+        self.snapshot: Snapshot | None = None
+        self.record: Path | None = None
         self.error: Exception | None = None
         self.asked_keyframe = False  # set by ``build`` once its request is out
         self.done = threading.Event()

@@ -310,7 +310,6 @@ class RoomReceiver:
         self.opener = Opener()
         self.peers: dict[str, Peer] = {}
         self.joining: dict[str, Joining] = {}  # newcomers whose decoders are being built
-        self._building = threading.Lock()  # one decoder built at a time (GL set up once)
         self.figures: dict[str, PeerFigures] = {}
         self.locked: dict[str, float] = {}  # name -> when its messages last failed to open
         self.asked: dict[str, float] = {}  # name -> when its snapshot was last read
@@ -437,8 +436,10 @@ class RoomReceiver:
         self.inbox.put(_WAKE)
 
     def _build(self, joining: Joining, record: Path | None) -> Peer | None:
-        """On ``joining``'s thread: read and open its snapshot, ask for the keyframe (it comes
-        while the decoder is built), build the peer; None when the bucket has no snapshot."""
+        """On ``joining``'s thread: read and open its snapshot (a wait on the relay that
+        must not hold the others' pictures up) and ask for the keyframe; the receiving loop
+        builds the decoder (:meth:`_joined`). Built here too, one room's call once waited
+        90 s for a newcomer that never came, with GL used on three threads at once."""
         name = joining.name
         sealed = self.get_snapshot(name)
         if sealed is None:
@@ -448,10 +449,8 @@ class RoomReceiver:
             raise PacketError(f"expected a Snapshot, got {type(snapshot).__name__}")
         self._request_keyframe(name, snapshot.seq)
         joining.asked_keyframe = True
-        with self._building:
-            peer = Peer(name, joining.kid, snapshot, record, self.gallery, self.sound)
-            peer.decoder.release_context()  # it draws on the receiving thread
-        return peer
+        joining.snapshot, joining.record = snapshot, record
+        return None
 
     def _joined(self, joining: Joining) -> None:
         """``joining`` is done: the peer takes its place and its messages so far are decoded,
@@ -473,9 +472,16 @@ class RoomReceiver:
             return
         if exc is not None:
             raise exc
-        peer = joining.peer
-        if peer is None:
+        if joining.snapshot is None:
             logger.info("%s sends but has no snapshot in the room's bucket yet", name)
+            return
+        try:
+            peer = Peer(
+                name, joining.kid, joining.snapshot, joining.record, self.gallery, self.sound
+            )
+        except ValueError as exc:  # a snapshot this decoder cannot take (another rig)
+            self.locked[name] = time.monotonic()
+            self.notify(f"{name} cannot be shown: {exc}")
             return
         figures = self.figures[name]
         if joining.asked_keyframe:
