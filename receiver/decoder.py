@@ -376,9 +376,5 @@ class FaceDecoder:
         # The feathered edge and the surroundings go where the sender saw them.
         return correct(image, face, outline, edge, feather)
 
-    def release_context(self) -> None:
-        """Let another thread draw with this decoder (it was built on this one)."""
-        self.renderer.release_context()
-
     def close(self) -> None:
         self.renderer.close()

@@ -111,7 +111,7 @@ class FaceRenderer:
     that the face never covers).
 
     Each renderer owns its own EGL context, so several can live in one process; use one
-    renderer from one thread at a time (:meth:`release_context` hands it to another).
+    renderer from the thread that made it.
     """
 
     def __init__(
@@ -308,21 +308,6 @@ class FaceRenderer:
         else:
             background = None if self._background is None else self._background.copy()
         return self._composite(rgba, background, feather_px)
-
-    def release_context(self) -> None:
-        """Leave the GL context current in no thread: a renderer made on one thread may then
-        be used from another (an EGL context is current in one thread at a time, and stays
-        so in the thread that made it until released)."""
-        if self._renderer is None:
-            return
-        platform = self._renderer._platform
-        display = getattr(platform, "_egl_display", None)
-        if display is None:
-            platform.make_uncurrent()
-            return
-        from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglMakeCurrent
-
-        eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
 
     def close(self) -> None:
         """Free the GL context; the renderer cannot be used afterwards."""

@@ -212,29 +212,6 @@ def test_a_renderer_dropped_without_closing_breaks_no_other(mesh):
     assert np.array_equal(first, again)
 
 
-def test_a_renderer_made_on_one_thread_draws_on_another(renderer, mesh):
-    """A room builds a newcomer's decoder on a thread of its own and draws with it on the
-    receiving thread: the context is released where it was made."""
-    import threading
-
-    img = frontal(mesh.vertices)
-    made: list[FaceRenderer] = []
-
-    def build() -> None:
-        other = FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture())
-        other.render(img)  # the first draw compiles the shaders, on the building thread
-        other.release_context()
-        made.append(other)
-
-    thread = threading.Thread(target=build)
-    thread.start()
-    thread.join()
-    with made[0] as other:
-        drawn, mask = other.render(img)
-    expected, expected_mask = renderer.render(img)
-    assert np.array_equal(drawn, expected) and np.array_equal(mask, expected_mask)
-
-
 _CHILD = """
 import json, sys
 import numpy as np
