@@ -8,7 +8,7 @@ import json
 import re
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -97,13 +97,17 @@ def test_a_node_dies_under_a_sender(cluster: list[Relay], tmp_path: Path, death:
         )
 
 
+def quiet_link(
+    servers: list[str], name: str, notify: Callable[[str], None] = lambda _: None
+) -> RoomLink:
+    """A link to room "standup" as ``name`` that takes no one's messages."""
+    return RoomLink(servers, "standup", name, on_message=lambda *_: None, notify=notify)
+
+
 def test_a_room_opens_on_a_cluster_that_has_only_just_started(cluster: list[Relay]) -> None:
     # A cluster's first seconds: JetStream's meta leader is still being elected, so making the
     # room's bucket times out or is refused. Joining waits for it instead of failing.
-    link = RoomLink(
-        [r.config.client_url() for r in cluster], "standup", "alice",
-        on_message=lambda *_: None, notify=lambda _: None,
-    )  # fmt: skip
+    link = quiet_link([r.config.client_url() for r in cluster], "alice")
     try:
         link.start()
         link.put_snapshot(b"sealed")
@@ -117,10 +121,7 @@ def test_the_bucket_takes_a_snapshot_while_the_cluster_elects_its_leader_again(
 ) -> None:
     # The node that led the bucket dies: the others elect another in seconds, and a sender
     # that puts its snapshot meanwhile (one joining just then) waits for it instead of failing.
-    link = RoomLink(
-        [r.config.client_url() for r in cluster], "standup", "dave",
-        on_message=lambda *_: None, notify=lambda _: None,
-    )  # fmt: skip
+    link = quiet_link([r.config.client_url() for r in cluster], "dave")
     try:
         link.start()
         link.put_snapshot(b"first")
@@ -139,10 +140,7 @@ def test_a_participant_given_one_node_moves_to_another_the_cluster_told_of(
     # Only the first node's URL is given: the cluster tells the link of the others (their URLs
     # without the token), and when that node dies the link reconnects to one of them.
     said: list[str] = []
-    link = RoomLink(
-        [cluster[0].config.client_url()], "standup", "alice",
-        on_message=lambda *_: None, notify=said.append,
-    )  # fmt: skip
+    link = quiet_link([cluster[0].config.client_url()], "alice", notify=said.append)
     try:
         link.start()
         link.put_snapshot(b"sealed")
