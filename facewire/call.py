@@ -294,6 +294,12 @@ class _Source:
         self.limit = args.frames
         bundled = args.camera is None and args.input is None
         self.name = "the bundled clip" if bundled else self.video.name
+        self._dropped_before = 0  # by the file's earlier loops
+
+    @property
+    def dropped(self) -> int:
+        """Input frames left out because this end was behind (see VideoSource)."""
+        return self._dropped_before + self.video.dropped
 
     @property
     def scaled_from(self) -> str:
@@ -303,7 +309,7 @@ class _Source:
     def frames(self) -> Iterator[Any]:
         from facewire.sender.session import scaled
 
-        return itertools.islice(scaled(self._numbered(), self.size), self.limit)
+        return scaled(_up_to(self._numbered(), self.limit), self.size)
 
     def _numbered(self) -> Iterator[Any]:
         from facewire.sender.capture import VideoSource
@@ -317,12 +323,24 @@ class _Source:
             if not self.loop or count == 0:
                 return
             offset += count
+            self._dropped_before += self.video.dropped
             self.video.close()
             assert self.path is not None
             self.video = VideoSource(self.path, realtime=True)
 
     def close(self) -> None:
         self.video.close()
+
+
+def _up_to(frames: Iterator[Any], limit: int | None) -> Iterator[Any]:
+    """``frames`` whose place in the input is under ``limit`` (``--frames`` counts the
+    input's frames, those a busy machine left out too)."""
+    for frame in frames:
+        if limit is not None and frame.index >= limit:
+            return
+        yield frame
+        if limit is not None and frame.index + 1 >= limit:
+            return  # the next frame would be read (and waited for) only to be left out
 
 
 def _paused_while_alone(
@@ -431,9 +449,11 @@ def send(
     finally:
         source.close()
     why = "stopped" if report.stopped or stop() else "end of input"
-    tell(f"sent {report.frames_in} frames ({why}); said bye")
+    behind = f", {source.dropped} left out: this machine was behind" if source.dropped else ""
+    tell(f"sent {report.frames_in} frames ({why}{behind}); said bye")
     return {
         "frames_in": report.frames_in,
+        "frames_dropped": source.dropped,
         "packets": report.packets,
         "keyframe_requests": report.keyframe_requests,
         "sender_fps": report.fps,

@@ -184,11 +184,12 @@ def _call(
             "to_receiver": _by_size(endpoint.sizes_sent),
             "to_sender": _by_size(endpoint.sizes_received),
         }
-    duration = sender.frames_in / video.fps
+    duration = (sender.frames_in + video.dropped) / video.fps  # the input's span
     kbps = {ch: traffic[ch] * 8 / duration / 1000 for ch in CHANNELS}
     kbps["total"] = sum(kbps.values())
     return {
         "frames_in": sender.frames_in,
+        "frames_dropped": video.dropped,
         "frames_out": report["frames_out"],
         "frames_held": report["frames_held"],
         "frames_untracked": encoder.frames_untracked,
@@ -281,6 +282,7 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
     print(
         f"call: {stats['frames_in']} frames in, {stats['frames_out']} out "
         f"({stats['width']}x{stats['height']} at {stats['fps']:.1f} fps, "
+        f"{stats['frames_dropped']} left out as this machine was behind, "
         f"{stats['frames_untracked']} untracked, {stats['frames_over_rate']} held back by the "
         f"geometry's rate cap, {stats['malformed']} malformed)"
     )

@@ -90,6 +90,7 @@ class _SendingSide:
         self.stop, self.tell = stop, tell
         self.endpoint: Any = None
         self.report: Any = None
+        self.dropped = 0  # input frames left out: this end was behind
         self.error: BaseException | None = None
         self.done = threading.Event()
         self.thread = threading.Thread(target=self._run, name="room-sender", daemon=True)
@@ -137,6 +138,7 @@ class _SendingSide:
             self.report = run_sender(endpoint, encoder, sent, stop=self.stop)  # type: ignore[arg-type]
             self.link.delete_snapshot()  # a joiner from now on finds no stale face
         finally:
+            self.dropped = source.dropped
             source.close()
 
 
@@ -282,6 +284,7 @@ def _stats(args: argparse.Namespace, servers: list[str], link: Any, receiver: An
         report = sending.report
         sent = {
             "frames_in": report.frames_in,
+            "frames_dropped": sending.dropped,
             "packets": report.packets,
             "keyframe_requests": report.keyframe_requests,
             "sender_fps": round(report.fps, 1),

@@ -47,7 +47,10 @@ class VideoSource:
 
     source : camera index (int or digit string), or a path to any video OpenCV reads.
     realtime : pace a file at its frame rate (as a camera would deliver it); False reads
-        as fast as possible (for measuring).
+        as fast as possible (for measuring). A paced frame read more than a frame's time
+        after it was due is left out (:attr:`dropped`), as a camera's driver keeps only the
+        newest frame for a reader that falls behind: the call, and the sound sent with its
+        frames, keep real time on a machine too busy for every frame.
     """
 
     def __init__(self, source: int | str | Path, realtime: bool = False) -> None:
@@ -83,6 +86,7 @@ class VideoSource:
         self.frame_count = count if count > 0 and not self.is_camera else None
         self.realtime = realtime and not self.is_camera
         self._origin_us, self._origin_index = now_us(), 0
+        self.dropped = 0  # paced frames left out, read too late
         logger.info("opened %s: %dx%d at %.2f fps", self.name, self.width, self.height, self.fps)
 
     def frames(self, limit: int | None = None) -> Iterator[CapturedFrame]:
@@ -101,6 +105,10 @@ class VideoSource:
                 wait = due - now_us()
                 if wait > 0:
                     time.sleep(wait / 1e6)
+                elif -wait > 1e6 / self.fps:
+                    self.dropped += 1
+                    index += 1
+                    continue
             yield CapturedFrame(index, image, now_us())
             index += 1
 

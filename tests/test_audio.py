@@ -7,6 +7,9 @@ needed), files made with PyAV.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -346,14 +349,21 @@ def test_mux_puts_the_sound_beside_the_video(tmp_path: Path) -> None:
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 30
 
 
-@pytest.mark.parametrize("case", ["voice-at-6-s", "voice-from-the-start", "no-sound"])
+@pytest.mark.parametrize(
+    "case", ["voice-at-6-s", "voice-from-the-start", "sender-behind", "no-sound"]
+)
 def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: str) -> None:
     """``facewire send`` and ``facewire receive --record`` as a user runs them: the recording
     carries the voice where the input had it beside the same frames. The bundled clip speaks
     from 6 s on; a clip that speaks from its first frame meets the sender's slow first frames
-    (the recording once put its voice 50 ms late)."""
+    (the recording once put its voice 50 ms late). A sender that shares its core with a busy
+    process keeps up by leaving frames out: the voice stays whole (it once sent its sound at
+    the pace of its frames, and 50 of 110 packets came after their turn)."""
     from cli_call import Facewire, all_end_well, free_ports
 
+    behind = case == "sender-behind"
+    if behind and len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs two cores: the sender's, shared, and the receiver's")
     port = free_ports(2)
     record = tmp_path / "call.mp4"
     talking = case == "voice-from-the-start"
@@ -361,15 +371,26 @@ def test_send_and_receive_record_the_voice_with_the_face(tmp_path: Path, case: s
     source = (
         ("--input", str(talking_clip(clip, talking_voice()))) if talking else ("--frames", "240")
     )
-    receiver = Facewire(
-        "receive", "--bind", f"tcp://127.0.0.1:{port}", "--plain", "--once",
-        "--record", str(record),
-    )  # fmt: skip
-    sender = Facewire(
-        "send", "--connect", f"tcp://127.0.0.1:{port}", "--plain", *source,
-        *(("--no-sound",) if case == "no-sound" else ()),
-    )  # fmt: skip
-    all_end_well(sender, receiver)
+    cores = sorted(os.sched_getaffinity(0))[:2]
+    busy = [sys.executable, "-c", "while True: pass"]
+    hog = subprocess.Popen(["taskset", "-c", str(cores[0]), *busy]) if behind else None
+    try:
+        receiver = Facewire(
+            "receive", "--bind", f"tcp://127.0.0.1:{port}", "--plain", "--once",
+            "--record", str(record),
+            prefix=("taskset", "-c", str(cores[1])) if behind else (),
+        )  # fmt: skip
+        sender = Facewire(
+            "send", "--connect", f"tcp://127.0.0.1:{port}", "--plain", *source,
+            *(("--no-sound",) if case == "no-sound" else ()),
+            prefix=("taskset", "-c", str(cores[0])) if behind else (),
+        )  # fmt: skip
+        all_end_well(sender, receiver)
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+    print(sender.lines[-1])
     recorded = read_audio(record)
     if case == "no-sound":
         assert len(recorded) == 0, "--no-sound recorded sound"

@@ -52,19 +52,22 @@ def talking_clip(path: Path, voice: np.ndarray) -> Path:
 
 
 def voice_match(recorded: np.ndarray, speech: np.ndarray) -> tuple[float, float]:
-    """(correlation, lag in ms) of the loudness of ``recorded`` against ``speech``, per 5 ms:
-    two codecs (Opus, then the recording's AAC) keep the voice, not its waveform's phase."""
-    step = AUDIO_RATE // 200
+    """(correlation, lag in ms) of the loudness of ``recorded`` against ``speech``: RMS over
+    10 ms every millisecond, the best lag within 300 ms either way. Two codecs (Opus, then
+    the recording's AAC) keep the voice, not its waveform's phase. (Loudness per 5 ms, lags
+    in 5 ms steps, scored the same voice 0.95 or 0.75 as it lay on or between that grid.)"""
+    hop, window = AUDIO_RATE // 1000, AUDIO_RATE // 100
 
     def loudness(pcm: np.ndarray) -> np.ndarray:
-        n = len(pcm) // step * step
-        return np.sqrt((pcm[:n].astype(float).reshape(-1, step) ** 2).mean(axis=1))
+        energy = np.concatenate([[0.0], np.cumsum(pcm.astype(float) ** 2)])
+        starts = np.arange(0, len(pcm) - window + 1, hop)
+        return np.sqrt((energy[starts + window] - energy[starts]) / window)
 
     a, b = loudness(recorded), loudness(speech)
     n = min(len(a), len(b))
     best = (-1.0, 0.0)
-    for lag in range(-60, 61):  # +-300 ms
+    for lag in range(-300, 301):
         x = a[max(lag, 0) : n + min(lag, 0)]
         y = b[max(-lag, 0) : n - max(lag, 0)]
-        best = max(best, (float(np.corrcoef(x, y)[0, 1]), lag * 5.0))
+        best = max(best, (float(np.corrcoef(x, y)[0, 1]), float(lag)))
     return best
