@@ -322,7 +322,7 @@ class _Source:
                 yield replace(frame, index=frame.index + offset)
             if not self.loop or count == 0:
                 return
-            offset += count
+            offset += count + self.video.dropped  # every frame the file has, left out or not
             self._dropped_before += self.video.dropped
             self.video.close()
             assert self.path is not None

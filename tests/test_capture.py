@@ -1,0 +1,60 @@
+"""A file read at its frame rate, as a camera gives frames: a reader that falls behind gets
+the newest frame, the ones it had no time for are left out, and the numbers go on."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from facewire.call import MAX_SIZE, _Source
+from facewire.sender.capture import VideoSource
+
+FPS = 30.0
+FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("capture") / "count.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), FPS, (64, 48))
+    for i in range(FRAMES):
+        writer.write(np.full((48, 64, 3), 20 * i, np.uint8))
+    writer.release()
+    return path
+
+
+def test_a_reader_behind_gets_the_newest_frame_and_keeps_real_time(clip: Path) -> None:
+    with VideoSource(clip, realtime=True) as video:
+        start = time.monotonic()
+        seen = []
+        for frame in video.frames():
+            seen.append(frame.index)
+            time.sleep(2.5 / FPS)  # a sender that takes two and a half frames' time for each
+        elapsed = time.monotonic() - start
+    assert video.dropped > 0 and len(seen) + video.dropped == FRAMES
+    assert seen == sorted(set(seen)) and seen[0] == 0
+    # The frames shown keep the file's pace: never more than a frame behind when read.
+    assert abs(seen[-1] / FPS - (elapsed - 2.5 / FPS)) < 2 / FPS
+
+
+def test_a_looped_file_numbers_on_past_the_frames_left_out(clip: Path) -> None:
+    args = argparse.Namespace(
+        frames=3 * FRAMES, camera=None, input=str(clip), loop=True, max_size=MAX_SIZE
+    )
+    source = _Source(args)
+    try:
+        seen = []
+        for frame in source.frames():
+            seen.append(frame.index)
+            time.sleep(1.6 / FPS)
+    finally:
+        source.close()
+    # Each loop's frames follow the last one's, whichever were left out, and --frames counts
+    # the input's frames: three loops.
+    assert seen == sorted(set(seen)) and seen[-1] < 3 * FRAMES <= seen[-1] + source.dropped + 1
+    assert source.dropped > 0 and len(seen) + source.dropped == 3 * FRAMES
