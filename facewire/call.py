@@ -295,6 +295,13 @@ class _Source:
         bundled = args.camera is None and args.input is None
         self.name = "the bundled clip" if bundled else self.video.name
         self._dropped_before = 0  # by the file's earlier loops
+        self._offset = 0  # the number of the file's first frame in this loop
+
+    @property
+    def read_to(self) -> int:
+        """The number of the input's frame after the last one read (sent or left out)."""
+        read = self._offset + self.video.read_to
+        return read if self.limit is None else min(self.limit, read)
 
     @property
     def dropped(self) -> int:
@@ -314,15 +321,14 @@ class _Source:
     def _numbered(self) -> Iterator[Any]:
         from facewire.sender.capture import VideoSource
 
-        offset = 0
         while True:
             count = 0
             for frame in self.video.frames():
                 count += 1
-                yield replace(frame, index=frame.index + offset)
+                yield replace(frame, index=frame.index + self._offset)
             if not self.loop or count == 0:
                 return
-            offset += count + self.video.dropped  # every frame the file has, left out or not
+            self._offset += self.video.read_to  # every frame the file has, left out or not
             self._dropped_before += self.video.dropped
             self.video.close()
             assert self.path is not None
@@ -442,6 +448,7 @@ def send(
                 sent,
                 stop=stop,
                 on_stats=lambda values: presence.on_stats(values, tell),
+                read_to=lambda: source.read_to,
             )
         finally:
             media = endpoint.media_figures()

@@ -11,6 +11,7 @@ import dataclasses
 import itertools
 import json
 import logging
+import math
 import multiprocessing as mp
 import queue
 import tempfile
@@ -163,7 +164,13 @@ def _call(
                 endpoint.max_bps,
             )
             sent_frames = with_sound(itertools.chain(buffered, frames), sound, video.fps)
-            sender = run_sender(endpoint, encoder, _kept(sent_frames, keep))
+            limit = args.frames or video.frame_count or math.inf
+            sender = run_sender(
+                endpoint,
+                encoder,
+                _kept(sent_frames, keep),
+                read_to=lambda: int(min(limit, video.read_to)),
+            )
             if keep is not None:
                 keep.close()
             status, report = results.get(timeout=RECEIVER_TIMEOUT_S)

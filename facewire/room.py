@@ -135,7 +135,13 @@ class _SendingSide:
             )
             sent = with_sound(itertools.chain(restamped(buffered), frames), sound, source.video.fps)
             # RoomSender has the part of SenderEndpoint's interface that run_sender uses.
-            self.report = run_sender(endpoint, encoder, sent, stop=self.stop)  # type: ignore[arg-type]
+            self.report = run_sender(
+                endpoint,  # type: ignore[arg-type]
+                encoder,
+                sent,
+                stop=self.stop,
+                read_to=lambda: source.read_to,
+            )
             self.link.delete_snapshot()  # a joiner from now on finds no stale face
         finally:
             self.dropped = source.dropped

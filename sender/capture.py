@@ -17,6 +17,11 @@ from facewire.protocol.clock import now_us
 logger = logging.getLogger(__name__)
 
 DEMO_CLIP = "demo_clip.mp4"
+#: A paced file's frame this many frames' time late is left out: V4L2 cameras queue about
+#: four, so a reader this far behind would have lost frames from a camera too. Less, and a
+#: call's slow first frames (its first keyframe, its first patches) cost frames on a quiet
+#: machine; more, and the sound, sent with the frames, falls further behind its pace.
+BEHIND_FRAMES = 3
 
 
 class CaptureError(RuntimeError):
@@ -47,10 +52,10 @@ class VideoSource:
 
     source : camera index (int or digit string), or a path to any video OpenCV reads.
     realtime : pace a file at its frame rate (as a camera would deliver it); False reads
-        as fast as possible (for measuring). A paced frame read more than a frame's time
-        after it was due is left out (:attr:`dropped`), as a camera's driver keeps only the
-        newest frame for a reader that falls behind: the call, and the sound sent with its
-        frames, keep real time on a machine too busy for every frame.
+        as fast as possible (for measuring). A paced frame read more than BEHIND_FRAMES
+        frames' time after it was due is left out (:attr:`dropped`), as a camera's driver,
+        its few buffers full, drops frames for a reader that falls behind: the call, and the
+        sound sent with its frames, keep real time on a machine too busy for every frame.
     """
 
     def __init__(self, source: int | str | Path, realtime: bool = False) -> None:
@@ -87,6 +92,7 @@ class VideoSource:
         self.realtime = realtime and not self.is_camera
         self._origin_us, self._origin_index = now_us(), 0
         self.dropped = 0  # paced frames left out, read too late
+        self.read_to = 0  # the number of the frame after the last one read
         logger.info("opened %s: %dx%d at %.2f fps", self.name, self.width, self.height, self.fps)
 
     def frames(self, limit: int | None = None) -> Iterator[CapturedFrame]:
@@ -100,12 +106,13 @@ class VideoSource:
                 ok, image = self._cap.read()
                 if not ok or image is None:
                     break
+            self.read_to = index + 1
             if self.realtime:
                 due = self._origin_us + int((index - self._origin_index) * 1e6 / self.fps)
                 wait = due - now_us()
                 if wait > 0:
                     time.sleep(wait / 1e6)
-                elif -wait > 1e6 / self.fps:
+                elif -wait > BEHIND_FRAMES * 1e6 / self.fps:
                     self.dropped += 1
                     index += 1
                     continue

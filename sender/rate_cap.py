@@ -43,17 +43,26 @@ class RateCap:
     def __init__(self, kbps: float, fps: float, bucket_s: float = BUCKET_S) -> None:
         if not (kbps > 0 and fps > 0 and bucket_s > 0):
             raise ValueError(f"rate {kbps} kbit/s, {fps} fps and bucket {bucket_s} s must be > 0")
-        self.per_frame = kbps * 1000.0 / 8.0 / fps
-        self.low = kbps * 1000.0 / 8.0 * LOW_S
+        self.fps, self.bucket_s = fps, bucket_s
         self.slack_steps = SLACK_STEPS
-        self.capacity = kbps * 1000.0 / 8.0 * bucket_s
+        self.tokens = 0.0
+        self.set_rate(kbps)
         self.tokens = min(self.capacity, kbps * 1000.0 / 8.0 * START_S)
+
+    def set_rate(self, kbps: float) -> None:
+        """Fill at ``kbps`` from now on (0: not at all), holding ``bucket_s`` of it."""
+        self.per_frame = max(0.0, kbps) * 1000.0 / 8.0 / self.fps
+        self.low = max(0.0, kbps) * 1000.0 / 8.0 * LOW_S
+        self.capacity = max(0.0, kbps) * 1000.0 / 8.0 * self.bucket_s
+        self.tokens = min(self.tokens, self.capacity)
         #: Frames whose packet was held back.
         self.held = 0
 
     def slack(self) -> float:
         """Steps of hysteresis the quantiser adds for the next frame: none while the bucket
         holds LOW_S of budget or more, rising linearly to ``slack_steps`` as it empties."""
+        if self.low <= 0:  # no budget at all
+            return self.slack_steps
         return self.slack_steps * min(1.0, max(0.0, 1.0 - self.tokens / self.low))
 
     def next_frame(self) -> bool:

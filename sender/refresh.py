@@ -110,6 +110,10 @@ class RefreshMeter:
         #: Bytes of the refreshes sent.
         self.bytes = 0
 
+    def set_budget(self, kbps: float) -> None:
+        """Fill the bucket at ``kbps`` from now on (what the link leaves the pictures)."""
+        self.bucket.set_rate(kbps)
+
     def _reduced(self, image: np.ndarray) -> np.ndarray:
         k = self.reduce
         if k == 1:

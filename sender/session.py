@@ -27,14 +27,19 @@ from facewire.protocol.packets import (
 from facewire.protocol.transport import SenderEndpoint, TransportError
 from facewire.sender.capture import CapturedFrame, CaptureError
 from facewire.sender.encoder import FaceEncoder
-from facewire.sender.rem import BUDGET_KBPS as REM_BUDGET_KBPS
+from facewire.sender.refresh import REFRESH_KBPS
+from facewire.sender.rem import BUDGET_KBPS as EYES_KBPS
+from facewire.sender.rem import MOUTH_BUDGET_KBPS
 from facewire.sender.snapshot_draft import draft
 
 logger = logging.getLogger(__name__)
 
 FramePacket = KeyFrame | DeltaFrame
-#: How often the REM patches' budget follows the link's (frames).
+#: How often the pictures' budget follows the link's (frames).
 BUDGET_EVERY_FRAMES = 15
+#: The pictures' budget on a wide link, payload: the eyes', the mouth's inside's and the
+#: refreshes' together.
+PICTURES_KBPS = EYES_KBPS + MOUTH_BUDGET_KBPS + REFRESH_KBPS
 #: What the sender publishes per frame: its REM patches and refreshes, then its frame packet.
 UpdatePacket = KeyFrame | DeltaFrame | RemPatch | Refresh
 
@@ -72,6 +77,7 @@ def run_sender(
     publish: Callable[[UpdatePacket], None] | None = None,
     stop: Callable[[], bool] = _never,
     on_stats: Callable[[dict[str, float]], None] | None = None,
+    read_to: Callable[[], int] | None = None,
 ) -> SenderReport:
     """Encode and publish every frame of ``frames``, then say Bye.
 
@@ -82,7 +88,8 @@ def run_sender(
     for both (a test's lossy link). Once ``stop()`` is
     True (looked at before each frame) the call ends the same way, with a Bye. ``on_stats``
     sees each ReceiverStats as it comes (a receiver says "ready" when it joins, "left" when
-    it goes).
+    it goes). ``read_to`` gives the number of the input's frame after the last one read: the
+    Bye names it, so frames left out at the end (a busy machine) are held there too.
 
     A frame of another scene (``FaceEncoder.scene_changed``: a cut) starts a session from it
     (:class:`_SceneStart`), whose snapshot (and its draft) the endpoint serves from then on;
@@ -140,15 +147,27 @@ def run_sender(
         report.frames_in += 1
         endpoint.heartbeat_if_idle()
         endpoint.end_frame()
-        if encoder.rem is not None and report.frames_in % BUDGET_EVERY_FRAMES == 0:
-            # The patches take what the link's budget leaves, never more than their own.
-            left_kbps = endpoint.patch_budget_bps() / 1000.0
-            encoder.rem.set_budget(min(REM_BUDGET_KBPS, left_kbps))
+        if report.frames_in % BUDGET_EVERY_FRAMES == 0:
+            share_pictures_budget(encoder, endpoint.patch_budget_bps() / 1000.0)
     if scene is not None:
         scene.done(wait=True)  # the encoder is the caller's again
+    if read_to is not None:
+        next_seq = max(next_seq, read_to())
     endpoint.publish(Bye(seq=next_seq))
     _read_back_channel(endpoint, encoder, report, on_stats)
     return report
+
+
+def share_pictures_budget(encoder: FaceEncoder, left_kbps: float) -> None:
+    """The pictures take what the link's budget leaves (``left_kbps``), never more than their
+    own: the eyes, the mouth's inside and the refreshes each the share of it they have of
+    PICTURES_KBPS. (Once only the eyes followed the link: the mouth's inside and the
+    refreshes, 3 kbit/s, came on top of what a thin link had left.)"""
+    scale = min(1.0, max(0.0, left_kbps) / PICTURES_KBPS)
+    if encoder.rem is not None:
+        encoder.rem.set_budget(EYES_KBPS * scale)
+    if encoder.refresh is not None:
+        encoder.refresh.set_budget(REFRESH_KBPS * scale)
 
 
 class _SceneStart:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import queue
 import random
+import re
 import signal
 import socket
 import subprocess
@@ -135,6 +136,17 @@ def all_end_well(*processes: Facewire) -> None:
     finally:
         for process in processes:
             process.kill()
+
+
+def sent_frames(line: str) -> tuple[int, str]:
+    """From ``send``'s last line, "sent N frames (WHY[, M left out: ...]); said bye": the
+    input's frames it read (N sent and M left out by a machine too busy for them), and WHY."""
+    match = re.fullmatch(
+        r"sent (\d+) frames \(([^,)]+)(?:, (\d+) left out: this machine was behind)?\); said bye",
+        line,
+    )
+    assert match, line
+    return int(match[1]) + int(match[3] or 0), match[2]
 
 
 def free_ports(count: int) -> int:

@@ -20,6 +20,7 @@ from cli_call import (
     free_ports,
     hang_up,
     run_facewire,
+    sent_frames,
     wait_for_file,
 )
 
@@ -87,10 +88,8 @@ def test_call_between_two_processes_with_keys(
     # the second path (receiver/lateness.py): a notice of the designed response, not part of
     # what this test checks.
     said = [line for line in sender.lines if not line.startswith("the receiver sees late")]
-    assert said[-2:] == [
-        "a receiver joined; sending",
-        f"sent {FRAMES} frames (end of input); said bye",
-    ]
+    assert said[-2] == "a receiver joined; sending"
+    assert sent_frames(said[-1]) == (FRAMES, "end of input"), said[-1]
     assert f"session ended (bye) after {FRAMES} frames" in receiver.lines, receiver.output()
     report = json.loads(stats.read_text())
     assert report["frames_out"] == FRAMES and report["ended_by"] == "bye"
@@ -139,7 +138,7 @@ def test_sigterm_on_either_end_ends_cleanly_and_the_other_end_waits(
         wait_for_file(tmp_path / "second.mp4", 50_000, second)
         sender.signal(signal.SIGINT)
         assert sender.wait() == 0, sender.output()
-        assert "frames (stopped); said bye" in sender.lines[-1]
+        assert sent_frames(sender.lines[-1])[1] == "stopped", sender.lines[-1]
         line = second.expect("session ended (bye) after")
         assert line.endswith("; waiting for a new session")
         assert second.process.poll() is None  # still waiting
@@ -250,7 +249,9 @@ def test_two_way_call_with_frames_on_both_ends_sends_them_all(tmp_path: Path, ke
     ]
     all_end_well(*ends)
     alice, bob = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("alice", "bob"))
-    assert (alice["sent"]["frames_in"], bob["sent"]["frames_in"]) == (45, 120)
+    # Every frame of each half was read: sent, or left out by a machine too busy for it.
+    read = [side["sent"]["frames_in"] + side["sent"]["frames_dropped"] for side in (alice, bob)]
+    assert read == [45, 120]
     assert not alice["sent"]["stopped"] and not bob["sent"]["stopped"]
     assert alice["received"]["ended_by"] == bob["received"]["ended_by"] == "bye"
     assert alice["received"]["frames_out"] == 120 and bob["received"]["frames_out"] == 45
