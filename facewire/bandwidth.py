@@ -365,7 +365,14 @@ def run_ours(
     out: dict[str, Any] = {
         "call": {
             k: stats.get(k)
-            for k in ("frames_in", "frames_out", "frames_held", "frames_untracked", "encrypted")
+            for k in (
+                "frames_in",
+                "frames_out",
+                "frames_dropped",
+                "frames_held",
+                "frames_untracked",
+                "encrypted",
+            )  # fmt: skip
         },
         "bytes": stats["bytes"],
     }

@@ -119,7 +119,8 @@ def test_json_holds_the_call_and_every_operating_point(result: dict[str, Any]) -
 
 def test_our_call_per_channel_payload(result: dict[str, Any]) -> None:
     ours = result["ours"]
-    assert ours["call"]["frames_in"] == FRAMES and ours["call"]["encrypted"] is True
+    call = ours["call"]  # a frame read late on a busy machine is left out, as a camera does
+    assert call["frames_in"] + call["frames_dropped"] == FRAMES and call["encrypted"] is True
     duration = FRAMES / result["fps"]
     payload = ours["channels_kbps"]["payload"]
     assert set(ours["channels_kbps"]) == {"payload"}  # no per-channel model of the wire

@@ -212,12 +212,17 @@ def test_two_way_call_ends_when_one_end_hangs_up(tmp_path: Path, keys: Path) -> 
         )
     all_end_well(*ends)
     alice, bob = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("alice", "bob"))
-    assert alice["sent"]["frames_in"] == 60 and not alice["sent"]["stopped"]
+    # Frames read: sent, or left out by a machine too busy for them (as a camera does).
+    read = {
+        n: s["sent"]["frames_in"] + s["sent"]["frames_dropped"]
+        for n, s in (("alice", alice), ("bob", bob))
+    }
+    assert read["alice"] == 60 and not alice["sent"]["stopped"]
     assert bob["received"]["frames_out"] == 60 and bob["received"]["ended_by"] == "bye"
     # bob's end stopped sending when alice hung up, and alice received all it sent.
     assert bob["sent"]["stopped"] and bob["sent"]["frames_in"] > 0
     assert alice["received"]["ended_by"] == "bye"
-    assert abs(alice["received"]["frames_out"] - bob["sent"]["frames_in"]) <= 1
+    assert abs(alice["received"]["frames_out"] - read["bob"]) <= 1
     for name, stats in (("alice", alice), ("bob", bob)):
         assert count_frames(tmp_path / f"{name}.mp4") == stats["received"]["frames_out"]
     assert ends[0].lines[-1].startswith("receive: received 1 session(s)")

@@ -110,7 +110,7 @@ def test_demo_with_markers(tmp_path: Path) -> None:
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     got = json.loads(stats.read_text())
-    assert got["frames_in"] == got["frames_out"] == 30
+    assert got["frames_in"] + got["frames_dropped"] == got["frames_out"] == 30
     assert got["frames_untracked"] == 0
     assert got["kbps"]["geometry"] > 0
     cap = cv2.VideoCapture(str(tmp_path / "out.mp4"))

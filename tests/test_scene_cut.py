@@ -110,7 +110,8 @@ def test_a_call_goes_on_across_a_cut_in_a_new_session(demo: tuple) -> None:
     inputs, rebuilt, stats = demo
     assert stats["ended_by"] == "bye" and stats["malformed"] == 0
     assert stats["scenes"] == 1 and len(stats["scene_first_s"]) == 1
-    assert stats["frames_out"] == stats["frames_in"] == len(inputs) == len(rebuilt)
+    read = stats["frames_in"] + stats["frames_dropped"]  # sent, or left out by a busy machine
+    assert stats["frames_out"] == read == len(inputs) == len(rebuilt)
     assert _off(rebuilt[-1], inputs[-1]) < 12.0
 
 
