@@ -56,9 +56,13 @@ class VideoSource:
         frames' time after it was due is left out (:attr:`dropped`), as a camera's driver,
         its few buffers full, drops frames for a reader that falls behind: the call, and the
         sound sent with its frames, keep real time on a machine too busy for every frame.
+    keep_late : pace a file but never leave a frame out (a test that follows a call frame by
+        frame through loss and recovery).
     """
 
-    def __init__(self, source: int | str | Path, realtime: bool = False) -> None:
+    def __init__(
+        self, source: int | str | Path, realtime: bool = False, keep_late: bool = False
+    ) -> None:
         camera = source if isinstance(source, int) else None
         if isinstance(source, str) and source.isdigit():
             camera = int(source)
@@ -90,6 +94,7 @@ class VideoSource:
         count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.frame_count = count if count > 0 and not self.is_camera else None
         self.realtime = realtime and not self.is_camera
+        self.keep_late = keep_late
         self._origin_us, self._origin_index = now_us(), 0
         self.dropped = 0  # paced frames left out, read too late
         self.read_to = 0  # the number of the frame after the last one read
@@ -112,7 +117,7 @@ class VideoSource:
                 wait = due - now_us()
                 if wait > 0:
                     time.sleep(wait / 1e6)
-                elif -wait > BEHIND_FRAMES * 1e6 / self.fps:
+                elif -wait > BEHIND_FRAMES * 1e6 / self.fps and not self.keep_late:
                     self.dropped += 1
                     index += 1
                     continue

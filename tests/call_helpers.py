@@ -122,8 +122,9 @@ def start_sender(
     frames: int | None = None,
 ) -> tuple[FaceEncoder, Snapshot, Iterator[CapturedFrame]]:
     """An encoder started on the bundled clip, its snapshot, and the frames still to send
-    (read at the clip's frame rate, as a camera would give them)."""
-    video = VideoSource(demo_clip_path(), realtime=True)
+    (read at the clip's frame rate, as a camera would give them, but every one of them however
+    late: these tests follow the call frame by frame)."""
+    video = VideoSource(demo_clip_path(), realtime=True, keep_late=True)
     # No refreshes (tests/test_refresh.py has them): one of a few hundred bytes crosses a paced
     # link in several datagrams and shows some frames after its own, which reference_frames,
     # every packet drawn at its frame, cannot know. (The bundled clip's hair stays still while
