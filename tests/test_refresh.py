@@ -135,3 +135,37 @@ def test_a_receiver_that_asks_for_a_keyframe_gets_the_refreshes_again(photo: np.
     again = [p for p in encoder.take_patches() if isinstance(p, Refresh)]
     assert [(p.seq, p.clears) for p in again] == [(20, True), (20, False)]
     assert (again[0].x, again[0].y, again[0].width, again[0].height) == (0, 0, SIDE, SIDE)
+
+
+@pytest.mark.parametrize("left_kbps", [0.0, None])
+def test_the_refreshes_share_what_the_link_leaves_the_pictures(
+    photo: np.ndarray, left_kbps: float | None
+) -> None:
+    """The pictures (the eyes, the mouth's inside, the refreshes) take what the link's budget
+    leaves, each its share: a link that leaves nothing gets no refresh of an object held up,
+    one that leaves half fills each bucket at half its rate, and a wide one gets it at once.
+    (Only the eyes followed the link once: 3 kbit/s of pictures came on top on a thin link.)"""
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
+    from facewire.sender.refresh import REFRESH_KBPS
+    from facewire.sender.rem import BUDGET_KBPS, MOUTH_BUDGET_KBPS
+    from facewire.sender.session import PICTURES_KBPS, share_pictures_budget
+
+    held = photo.copy()
+    held[120:180, 215:255] = cv2.resize(photo[80:200, 0:50], (40, 60))
+    encoder = FaceEncoder(SIDE, SIDE, 30.0)
+    assert encoder.start(CapturedFrame(0, photo, 0), seq=0) is not None
+    assert encoder.refresh is not None and encoder.rem is not None
+    share_pictures_budget(encoder, PICTURES_KBPS / 2)
+    kbps = 30.0 * 8 / 1000
+    assert encoder.refresh.bucket.per_frame * kbps == pytest.approx(REFRESH_KBPS / 2)
+    assert encoder.rem.rate * kbps == pytest.approx(BUDGET_KBPS / 2)
+    assert encoder.rem.mouth_rate * kbps == pytest.approx(MOUTH_BUDGET_KBPS / 2)
+    share_pictures_budget(encoder, PICTURES_KBPS * 4 if left_kbps is None else left_kbps)
+    for i in range(1, 31):
+        encoder.encode(CapturedFrame(i, held, i * 33_333))
+        encoder.take_patches()
+    if left_kbps == 0.0:
+        assert encoder.refresh.bytes == 0 and encoder.rem.rate == 0
+    else:
+        assert encoder.refresh.bytes > 0 and encoder.rem.rate * kbps == pytest.approx(BUDGET_KBPS)
