@@ -18,7 +18,8 @@ The scoring always uses this checkout's metric and tracker, so versions are scor
 The call is paced at the clip's frame rate unless ``--fast`` is given. With ``--fast`` a
 version-2 receiver that falls behind renders only the newest frame and writes the skipped
 ones as held copies of the previous picture, so the recording (and its score) depends on the
-machine's load; paced, every frame is rendered.
+machine's load; paced, every frame is rendered unless the sender falls three frames behind
+(a busy machine: it then leaves frames out as a camera does, the stats' ``frames_dropped``).
 
 ``--evaluate OUT.mp4`` scores an existing output without running a call (``--stats`` names
 its stats file for the bit rate).
