@@ -18,8 +18,8 @@ The scoring always uses this checkout's metric and tracker, so versions are scor
 The call is paced at the clip's frame rate unless ``--fast`` is given. With ``--fast`` a
 version-2 receiver that falls behind renders only the newest frame and writes the skipped
 ones as held copies of the previous picture, so the recording (and its score) depends on the
-machine's load; paced, every frame is rendered unless the sender falls three frames behind
-(a busy machine: it then leaves frames out as a camera does, the stats' ``frames_dropped``).
+machine's load; paced, every frame is rendered (``--every-frame``: a busy machine's sender
+would otherwise leave frames out as a camera does, and the score would measure the load).
 
 ``--evaluate OUT.mp4`` scores an existing output without running a call (``--stats`` names
 its stats file for the bit rate).
@@ -82,6 +82,13 @@ def check_imports(code: Path) -> None:
         raise SystemExit(f"--code {code}: packages imported from elsewhere: {stray or files}")
 
 
+def _demo_help(code: Path | None) -> str:
+    """``facewire demo --help`` of the checkout that runs the call (older ones lack flags)."""
+    cmd = [sys.executable, "-m", "facewire", "demo", "--help"]
+    done = subprocess.run(cmd, cwd=code, env=_env(code), capture_output=True, text=True)
+    return done.stdout
+
+
 def run_call(
     clip: Path, output: Path, stats: Path, fast: bool, frames: int | None, code: Path | None
 ) -> None:
@@ -89,6 +96,8 @@ def run_call(
     cmd += ["--output", str(output), "--compare", "", "--stats", str(stats)]
     if fast:
         cmd.append("--fast")
+    elif "--every-frame" in _demo_help(code):  # the picture is scored, not the machine's load
+        cmd.append("--every-frame")
     if frames is not None:
         cmd += ["--frames", str(frames)]
     done = subprocess.run(

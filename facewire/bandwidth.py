@@ -1,10 +1,10 @@
 """``facewire bandwidth``: our call next to H.264, VP9 and AV1 on the same clip.
 
-Our codec runs as ``facewire demo`` does (a real, paced loopback call between two processes,
-encrypted; run as a child process, as benchmarks/bench_quality.py runs it). The ordinary
-codecs encode the same frames with call settings (facewire.codecs) at each target rate and
-each rung of a resolution ladder. Every output is scored against the input by
-facewire.quality: frame i against frame i, luma SSIM and PSNR over the face, the head and the
+Our codec runs as ``facewire demo --every-frame`` does (a real, paced loopback call between
+two processes, encrypted, every frame sent however busy the machine; run as a child process,
+as benchmarks/bench_quality.py runs it). The ordinary codecs encode the same frames with call
+settings (facewire.codecs) at each target rate and each rung of a resolution ladder. Every
+output is scored against the input by facewire.quality: frame i against frame i, luma SSIM and PSNR over the face, the head and the
 whole frame, regions from the input's own landmarks (tracked once).
 
 Rates are bits per second over the clip's duration: "amortised" counts everything (our
@@ -257,8 +257,7 @@ def run_call(clip: Path, frames: int, fast: bool, folder: Path) -> tuple[dict[st
     output, stats = folder / "call.mp4", folder / "call.json"
     cmd = [sys.executable, "-m", "facewire", "demo", "--input", str(clip), "--frames", str(frames)]
     cmd += ["--output", str(output), "--compare", "", "--stats", str(stats)]
-    if fast:
-        cmd.append("--fast")
+    cmd.append("--fast" if fast else "--every-frame")  # the picture is scored, not the load
     env = dict(os.environ, PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "egl"))
     done = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     if done.returncode != 0:

@@ -44,6 +44,12 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="read the file as fast as possible instead of at its frame rate",
     )
+    p.add_argument(
+        "--every-frame",
+        action="store_true",
+        help="at the file's frame rate, but never leave a frame out on a busy machine (as a "
+        "camera would, and the call does by default): for scoring the picture, not the machine",
+    )
     from facewire.call import (
         add_budget_argument,
         add_geometry_arguments,

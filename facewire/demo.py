@@ -80,7 +80,7 @@ def run_demo(args: argparse.Namespace) -> int:
     source: str | Path = args.input if args.input else demo_clip_path()
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
-    video = VideoSource(source, realtime=not args.fast)
+    video = VideoSource(source, realtime=not args.fast, keep_late=args.every_frame)
     with video, tempfile.TemporaryDirectory() as tmp:
         # A camera cannot be read twice: keep what was sent for the side-by-side video.
         keep = video.is_camera and (args.compare or args.sheet)
