@@ -4,8 +4,9 @@ Our codec runs as ``facewire demo --every-frame`` does (a real, paced loopback c
 two processes, encrypted, every frame sent however busy the machine; run as a child process,
 as benchmarks/bench_quality.py runs it). The ordinary codecs encode the same frames with call
 settings (facewire.codecs) at each target rate and each rung of a resolution ladder. Every
-output is scored against the input by facewire.quality: frame i against frame i, luma SSIM and PSNR over the face, the head and the
-whole frame, regions from the input's own landmarks (tracked once).
+output is scored against the input by facewire.quality: frame i against frame i, luma SSIM
+and PSNR over the face, the head and the whole frame, regions from the input's own landmarks
+(tracked once).
 
 Rates are bits per second over the clip's duration: "amortised" counts everything (our
 snapshot, the codecs' key frame), "steady" everything after it. Our payload rates are per
