@@ -300,8 +300,7 @@ class _Source:
     @property
     def read_to(self) -> int:
         """The number of the input's frame after the last one read (sent or left out)."""
-        read = self._offset + self.video.read_to
-        return read if self.limit is None else min(self.limit, read)
+        return self._offset + self.video.read_to
 
     @property
     def dropped(self) -> int:
@@ -316,14 +315,18 @@ class _Source:
     def frames(self) -> Iterator[Any]:
         from facewire.sender.session import scaled
 
-        return scaled(_up_to(self._numbered(), self.limit), self.size)
+        return scaled(self._numbered(), self.size)
 
     def _numbered(self) -> Iterator[Any]:
         from facewire.sender.capture import VideoSource
 
         while True:
+            # --frames counts the input's frames, those a busy machine left out too.
+            left = None if self.limit is None else self.limit - self._offset
+            if left is not None and left <= 0:
+                return
             count = 0
-            for frame in self.video.frames():
+            for frame in self.video.frames(limit=left):
                 count += 1
                 yield replace(frame, index=frame.index + self._offset)
             if not self.loop or count == 0:
@@ -336,17 +339,6 @@ class _Source:
 
     def close(self) -> None:
         self.video.close()
-
-
-def _up_to(frames: Iterator[Any], limit: int | None) -> Iterator[Any]:
-    """``frames`` whose place in the input is under ``limit`` (``--frames`` counts the
-    input's frames, those a busy machine left out too)."""
-    for frame in frames:
-        if limit is not None and frame.index >= limit:
-            return
-        yield frame
-        if limit is not None and frame.index + 1 >= limit:
-            return  # the next frame would be read (and waited for) only to be left out
 
 
 def _paused_while_alone(
