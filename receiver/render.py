@@ -427,20 +427,22 @@ class FaceRenderer:
             out[box] = color
             return out, mask
         if feather_px > 0:
-            # Weight by the distance to the face's edge; colour is premultiplied by alpha, so
-            # both scale together. Deeper than the feather the face covers the background, and
-            # outside it the background stays: only the band between is blended.
-            inside = np.pad((alpha > 127).astype(np.uint8), 1)
+            # Weight by the distance to the face's edge: a pixel d inside it shows d / feather
+            # of the face, all of it from the feather on, and outside it the background. The
+            # colour is premultiplied by alpha, so divided back it is one blend of the box by
+            # the face's share there (alpha times the weight). Indexing the band's pixels and
+            # blending them alone cost 3-4 ms on a 400-px face.
+            inside = cv2.copyMakeBorder(
+                (alpha > 127).view(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0
+            )
             distance = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
-            under = out[box].copy()  # contiguous, so its flat view below writes into it
-            cv2.copyTo(color, (distance >= feather_px).view(np.uint8), under)
-            band = np.flatnonzero((distance > 0) & (distance < feather_px))
-            weight = distance.ravel()[band] * np.float32(1.0 / feather_px)
-            keep = 1.0 - alpha.ravel()[band] * weight * np.float32(1.0 / 255.0)
-            flat = under.reshape(-1, 3)
-            blended = color.reshape(-1, 3)[band] * weight[:, None] + flat[band] * keep[:, None]
-            flat[band] = np.minimum(blended + 0.5, 255.0).astype(np.uint8)
-            out[box] = under
+            share = np.minimum(distance * np.float32(1.0 / feather_px), np.float32(1.0))
+            share *= alpha * np.float32(1.0 / 255.0)
+            alpha = np.ascontiguousarray(alpha)
+            colour = cv2.divide(
+                np.ascontiguousarray(color), cv2.merge([alpha, alpha, alpha]), scale=255.0
+            )
+            out[box] = cv2.blendLinear(colour, out[box], share, 1.0 - share)
             return out, mask
         keep = (255 - alpha).astype(np.uint16)[:, :, None]
         blended = color + ((out[box] * keep + 127) // 255).astype(np.uint8)
