@@ -175,6 +175,10 @@ class FaceRenderer:
         # replaces for this instance).
         inner = self._renderer._renderer
         self._window = (0, 0, 0, 0)  # x0, y0, x1, y1 drawn and read back, frame pixels
+        #: The last frame's distance of each pixel to the face's edge, in a box whose corner
+        #: is the frame's pixel (x, y): (x, y, distances); None without a feathered face. The
+        #: edge's correction keeps the face's inside by it (models/edge.py).
+        self.depth: tuple[int, int, np.ndarray] | None = None
         me = weakref.ref(self)  # no cycle through the renderer: a dropped one is freed at once
 
         def read(scene: object, flags: int) -> tuple[np.ndarray, None]:
@@ -411,6 +415,7 @@ class FaceRenderer:
         # premultiplied by coverage: out = colour + background * (1 - alpha). ``rgba`` is the
         # window read back (``self._window``); only the face's bounding box needs blending.
         x0, y0, x1, y1 = self._window
+        self.depth = None
         mask = np.zeros((self.height, self.width), bool)
         mask[y0:y1, x0:x1] = rgba[:, :, 3] > 127
         out = np.zeros((self.height, self.width, 3), np.uint8) if background is None else background
@@ -436,6 +441,7 @@ class FaceRenderer:
                 (alpha > 127).view(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0
             )
             distance = cv2.distanceTransform(inside, cv2.DIST_L2, 3)[1:-1, 1:-1]
+            self.depth = (x0 + int(cols[0]), y0 + int(rows[0]), distance)
             share = np.minimum(distance * np.float32(1.0 / feather_px), np.float32(1.0))
             share *= alpha * np.float32(1.0 / 255.0)
             alpha = np.ascontiguousarray(alpha)
