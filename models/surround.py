@@ -214,7 +214,12 @@ class SurroundWarp:
         colour = cv2.copyMakeBorder(background, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
         below = cv2.copyMakeBorder(alpha, 0, pad, 0, 0, cv2.BORDER_REPLICATE)
         layer = cv2.copyMakeBorder(below, pad, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
-        self._source = np.dstack([colour, layer])
+        # The colour is premultiplied by the layer's weight: laid over the scene it is one
+        # add of the scene's share (_over), and interpolated it does not bleed what lies
+        # outside the person into the person's faded edge.
+        self._source = np.dstack(
+            [cv2.multiply(colour, cv2.merge([layer] * 3), scale=1 / 255), layer]
+        )
 
     def controls(
         self, outline: np.ndarray, camera: np.ndarray | None = None
@@ -405,12 +410,14 @@ def _moved(image: np.ndarray, camera: np.ndarray, box: tuple[int, int, int, int]
 
 
 def _over(person: np.ndarray, scene: np.ndarray) -> np.ndarray:
-    """(h, w, 3) uint8: the person layer ``person`` (h, w, 4), its weight in the fourth
-    channel, over ``scene`` (h, w, 3)."""
-    # Blending only the pixels of partial weight (indexed) cost as much at 1280x720: a large
-    # face's layer has a long faded edge.
-    alpha = person[:, :, 3].astype(np.float32) * np.float32(1.0 / 255.0)
-    return cv2.blendLinear(cv2.cvtColor(person, cv2.COLOR_BGRA2BGR), scene, alpha, 1.0 - alpha)
+    """(h, w, 3) uint8: the person layer ``person`` (h, w, 4), its colour premultiplied by its
+    weight in the fourth channel, over ``scene`` (h, w, 3)."""
+    # Integer multiply and add: cv2.blendLinear's float weights cost 3-4 ms at 1280x720, and
+    # blending only the pixels of partial weight (indexed) as much (a large face's layer has a
+    # long faded edge).
+    share = cv2.bitwise_not(person[:, :, 3])  # the scene's: 255 - weight
+    behind = cv2.multiply(scene, cv2.merge([share, share, share]), scale=1 / 255)
+    return cv2.add(cv2.cvtColor(person, cv2.COLOR_BGRA2BGR), behind)
 
 
 def _person_layer(person: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
