@@ -214,12 +214,13 @@ class SurroundWarp:
         colour = cv2.copyMakeBorder(background, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
         below = cv2.copyMakeBorder(alpha, 0, pad, 0, 0, cv2.BORDER_REPLICATE)
         layer = cv2.copyMakeBorder(below, pad, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
-        # The colour is premultiplied by the layer's weight: laid over the scene it is one
-        # add of the scene's share (_over), and interpolated it does not bleed what lies
-        # outside the person into the person's faded edge.
-        self._source = np.dstack(
-            [cv2.multiply(colour, cv2.merge([layer] * 3), scale=1 / 255), layer]
-        )
+        # A person layer's colour is premultiplied by its weight: laid over the scene it is
+        # one add of the scene's share (_over), and interpolated it does not bleed what lies
+        # outside the person into the person's faded edge. (Without one, all is warped, the
+        # reflection beyond the frame too.)
+        if self._layered:
+            colour = cv2.multiply(colour, cv2.merge([layer] * 3), scale=1 / 255)
+        self._source = np.dstack([colour, layer])
 
     def controls(
         self, outline: np.ndarray, camera: np.ndarray | None = None
