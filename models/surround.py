@@ -341,12 +341,14 @@ class SurroundWarp:
         )
         person = body if own else None
         bx0, by0, bx1, by1 = box = box or (0, 0, self.width, self.height)
-        out = self._moved("frame", camera, box, person).copy()
+        frame = self._moved("frame", camera, box, person)
         (x0, x1), (y0, y1) = self._box
         x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
         if x1 <= x0 or y1 <= y0:
-            return out
+            return frame.copy()
         reach = (x0, y0, x1, y1)
+        # The reach is written below: of a large face's it is all, and nothing need be copied.
+        out = np.empty_like(frame) if reach == box else frame.copy()
         # Reflected, not replicated: a frame's dark edge row smeared across a moved-in strip
         # shows as a black band. One two-channel map, no second (the stubs do not know it).
         moved4 = cv2.remap(  # type: ignore[call-overload]
@@ -358,9 +360,9 @@ class SurroundWarp:
         )
         inside = np.s_[y0 - by0 : y1 - by0, x0 - bx0 : x1 - bx0]
         if self._layered:
-            out[inside] = _over(moved4, self._moved("scene", camera, reach, person))
+            _over(moved4, self._moved("scene", camera, reach, person), out[inside])
         else:
-            out[inside] = cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR)
+            cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR, dst=out[inside])
         return out
 
     def _moved(
@@ -410,15 +412,15 @@ def _moved(image: np.ndarray, camera: np.ndarray, box: tuple[int, int, int, int]
     return cv2.warpPerspective(image, to_box, size, borderMode=border)
 
 
-def _over(person: np.ndarray, scene: np.ndarray) -> np.ndarray:
+def _over(person: np.ndarray, scene: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """(h, w, 3) uint8: the person layer ``person`` (h, w, 4), its colour premultiplied by its
-    weight in the fourth channel, over ``scene`` (h, w, 3)."""
+    weight in the fourth channel, over ``scene`` (h, w, 3); written into ``out`` if given."""
     # Integer multiply and add: cv2.blendLinear's float weights cost 3-4 ms at 1280x720, and
     # blending only the pixels of partial weight (indexed) as much (a large face's layer has a
     # long faded edge).
     share = cv2.bitwise_not(person[:, :, 3])  # the scene's: 255 - weight
     behind = cv2.multiply(scene, cv2.merge([share, share, share]), scale=1 / 255)
-    return cv2.add(cv2.cvtColor(person, cv2.COLOR_BGRA2BGR), behind)
+    return cv2.add(cv2.cvtColor(person, cv2.COLOR_BGRA2BGR), behind, dst=out)
 
 
 def _person_layer(person: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
