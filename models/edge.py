@@ -128,13 +128,20 @@ def move(image: np.ndarray, field: np.ndarray) -> np.ndarray:
 
 
 def correct(
-    image: np.ndarray, face: np.ndarray, outline: np.ndarray, vectors: np.ndarray, band: float
+    image: np.ndarray,
+    face: np.ndarray,
+    outline: np.ndarray,
+    vectors: np.ndarray,
+    band: float,
+    depth: tuple[int, int, np.ndarray] | None = None,
 ) -> np.ndarray:
     """``image`` (h, w, 3), the receiver's finished picture, with its face's edge and
     surroundings moved by the corrections ``vectors`` (EDGE_POINTS, 2) at ``outline``'s
     :func:`edge_points`, in place (a copy of a large frame cost more than the move around a
     small face). The face's inside, where the drawn face (``face``, (h, w) bool) lies deeper
-    than ``band`` pixels from its edge, keeps its place."""
+    than ``band`` pixels from its edge, keeps its place. ``depth`` (x, y, distances), the
+    distance of each pixel to the face's edge in a box of the picture whose corner is (x,
+    y), as the renderer measured it, saves measuring it again."""
     if not np.any(vectors):
         return image
     h, w = image.shape[:2]
@@ -153,11 +160,18 @@ def correct(
     moved = move(region, field)
     # The face's inside keeps its place: where the drawn face lies deeper than the band. The
     # face lies within the outline, well inside the box (all of it that is in the frame).
-    drawn = face[y0:y1, x0:x1].view(np.uint8)
-    fx, fy, fw, fh = cv2.boundingRect(drawn)
-    if fw and fh:
-        depth = cv2.distanceTransform(drawn[fy : fy + fh, fx : fx + fw], cv2.DIST_L2, 3)
+    # Measured with a border of no face: measured on the face's box cut out, the forehead's
+    # and the chin's edge, where they touch the box, counted as deep and were not corrected.
+    if depth is None:
+        drawn = np.pad(face[y0:y1, x0:x1], 1).view(np.uint8)
+        depth = (int(x0), int(y0), cv2.distanceTransform(drawn, cv2.DIST_L2, 3)[1:-1, 1:-1])
+    dx, dy, distance = depth[0] - x0, depth[1] - y0, depth[2]
+    fx, fy = max(dx, 0), max(dy, 0)
+    fw = min(dx + distance.shape[1], x1 - x0) - fx
+    fh = min(dy + distance.shape[0], y1 - y0) - fy
+    if fw > 0 and fh > 0:
+        deep = distance[fy - dy : fy - dy + fh, fx - dx : fx - dx + fw] > band
         keep = np.s_[fy : fy + fh, fx : fx + fw]
-        cv2.copyTo(region[keep], (depth > band).view(np.uint8), moved[keep])
+        cv2.copyTo(region[keep], deep.view(np.uint8), moved[keep])
     region[...] = moved
     return image

@@ -374,7 +374,7 @@ class FaceDecoder:
         if edge is None:
             return image
         # The feathered edge and the surroundings go where the sender saw them.
-        return correct(image, face, outline, edge, feather)
+        return correct(image, face, outline, edge, feather, self.renderer.depth)
 
     def close(self) -> None:
         self.renderer.close()

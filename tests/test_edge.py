@@ -101,6 +101,31 @@ def test_the_receiver_moves_the_edge_and_keeps_the_face_inside() -> None:
     assert correct(drawn, face.astype(bool), o, np.zeros((EDGE_POINTS, 2)), band) is drawn
 
 
+def test_the_edge_moves_all_round_the_face_its_top_and_bottom_too() -> None:
+    # The face's inside is measured from its edge, not from its box's sides: measured on the
+    # face's box cut out, the forehead's and the chin's edge, which touch the box, counted as
+    # deep inside and stayed where the geometry put them.
+    o = ellipse()
+    drawn = texture()
+    face = np.zeros((H, W), np.uint8)
+    cv2.fillPoly(face, [np.round(o).astype(np.int32)], 1)
+    band = 6.0
+    vectors = np.tile([2.0, -1.0], (EDGE_POINTS, 1))
+    out = correct(drawn.copy(), face.astype(bool), o, vectors, band)
+    depth = cv2.distanceTransform(np.pad(face, 1), cv2.DIST_L2, 3)[1:-1, 1:-1]
+    moved = (out != drawn).any(axis=2)
+    top, bottom = int(o[:, 1].min()), int(o[:, 1].max())
+    for rows in (np.s_[top : top + 4], np.s_[bottom - 3 : bottom + 1]):
+        edge = (depth[rows] > 0) & (depth[rows] < band)
+        assert edge.sum() > 20 and moved[rows][edge].mean() > 0.9
+    # The renderer's own distances (a box of them, at its corner) keep the same inside.
+    x0, y0, x1, y1 = 100, 50, 230, 200
+    given = correct(
+        drawn.copy(), face.astype(bool), o, vectors, band, (x0, y0, depth[y0:y1, x0:x1])
+    )
+    assert np.array_equal(given, out)
+
+
 def test_a_hostile_correction_moves_the_picture_no_further_than_the_limit() -> None:
     """The limit is docs/protocol.md's (6.2, `edge`): a tenth of the outline's width, written
     here, not read from the code (a limit four times larger passed that way)."""

@@ -348,3 +348,9 @@ def test_the_face_fades_in_over_the_feather(mesh):
     assert band.sum() > 1000
     assert np.abs(shown[band] - depth[band] / feather).max() < 0.02
     assert (shown[depth >= feather] > 0.99).all()
+    # The distances it blended by are kept for the edge's correction (models/edge.py).
+    x, y, kept = r.depth
+    assert np.array_equal(kept, depth[y : y + kept.shape[0], x : x + kept.shape[1]])
+    beyond = depth.copy()
+    beyond[y : y + kept.shape[0], x : x + kept.shape[1]] = 0
+    assert kept.size < 0.5 * H * W and not beyond.any()  # the face's box, all of the face

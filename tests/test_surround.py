@@ -103,6 +103,14 @@ def test_camera_motion_moves_the_whole_scene() -> None:
     expected = cv2.warpAffine(image, camera[:2], (W, H), borderMode=cv2.BORDER_REPLICATE)
     inner = np.s_[8:-8, 10:-10]
     assert np.abs(got[inner].astype(int) - expected[inner]).mean() < 1.0
+    # What comes in at the frame's top (the head's reach spans the frame's height) is the frame
+    # reflected: without a person layer the padding is warped as it is (a layer's weight, 0
+    # there, must not black it out).
+    down = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 5.0], [0.0, 0.0, 1.0]])
+    got = warp.warp(o + [0.0, 5.0], down)
+    reflected = cv2.warpAffine(image, down[:2], (W, H), borderMode=cv2.BORDER_REFLECT_101)
+    top = np.s_[:5, 100:380]
+    assert np.abs(got[top].astype(int) - reflected[top]).mean() < 1.0
 
 
 def test_an_outline_of_another_size_is_refused() -> None:
