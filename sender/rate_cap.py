@@ -48,6 +48,8 @@ class RateCap:
         self.tokens = 0.0
         self.set_rate(kbps)
         self.tokens = min(self.capacity, kbps * 1000.0 / 8.0 * START_S)
+        #: Frames whose packet was held back.
+        self.held = 0
 
     def set_rate(self, kbps: float) -> None:
         """Fill at ``kbps`` from now on (0: not at all), holding ``bucket_s`` of it."""
@@ -55,8 +57,6 @@ class RateCap:
         self.low = max(0.0, kbps) * 1000.0 / 8.0 * LOW_S
         self.capacity = max(0.0, kbps) * 1000.0 / 8.0 * self.bucket_s
         self.tokens = min(self.tokens, self.capacity)
-        #: Frames whose packet was held back.
-        self.held = 0
 
     def slack(self) -> float:
         """Steps of hysteresis the quantiser adds for the next frame: none while the bucket

@@ -99,3 +99,15 @@ def test_a_loosened_quantiser_holds_back_fewer_frames(clip: list[CapturedFrame])
     strict, _, _ = _call(clip, 0.6, slack_steps=0.0)
     assert loose.rate_cap is not None and strict.rate_cap is not None
     assert loose.rate_cap.held < 0.8 * strict.rate_cap.held
+
+
+def test_a_new_rate_keeps_the_bucket_and_its_count() -> None:
+    """The pictures' buckets follow the link (RateCap.set_rate): what the bucket holds is
+    kept up to its new depth, and the frames held back stay counted."""
+    cap = RateCap(1.5, 30.0)
+    cap.tokens, cap.held = cap.capacity, 3
+    cap.set_rate(0.75)
+    assert cap.capacity == pytest.approx(0.75 * 1000 / 8 * cap.bucket_s)
+    assert cap.tokens == cap.capacity and cap.held == 3
+    cap.set_rate(0.0)
+    assert cap.tokens == 0.0 and not cap.next_frame() and cap.slack() == cap.slack_steps
