@@ -54,7 +54,7 @@ import logging
 import cv2
 import numpy as np
 
-from facewire.models.thin_plate import ThinPlate, _squared_distances
+from facewire.models.thin_plate import ThinPlate, squared_distances
 
 logger = logging.getLogger(__name__)
 
@@ -464,7 +464,7 @@ def unfolded(points: np.ndarray, shifts: np.ndarray, rank: np.ndarray) -> np.nda
     A head tilting onto its shoulder carries a control that follows it next to one held
     still: there the displacement changes by more than the distance, and the spline folds the
     snapshot over itself (on Claire's shoulder, a blob of the wall behind)."""
-    gap, step = _squared_distances(points, points), _squared_distances(shifts, shifts)
+    gap, step = squared_distances(points, points), squared_distances(shifts, shifts)
     clash = np.less(gap, UNFOLD**2 * step)
     keep = np.ones(len(points), bool)
     order = np.argsort(rank)

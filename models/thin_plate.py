@@ -24,7 +24,7 @@ def _kernel(r2: np.ndarray) -> np.ndarray:
 _BLOCK = 256
 
 
-def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(m, n) squared distances between the rows of ``a`` (m, 2) and ``b`` (n, 2)."""
     dx = a[:, 0, None] - b[:, 0]
     dy = a[:, 1, None] - b[:, 1]
@@ -40,7 +40,7 @@ class ThinPlate:
         self.controls = c = np.asarray(controls, dtype=np.float64)
         n = len(c)
         system = np.zeros((n + 3, n + 3))
-        system[:n, :n] = _kernel(_squared_distances(c, c)) + smoothing * np.eye(n)
+        system[:n, :n] = _kernel(squared_distances(c, c)) + smoothing * np.eye(n)
         system[:n, n] = 1.0
         system[:n, n + 1 :] = c
         system[n, :n] = 1.0
@@ -56,5 +56,5 @@ class ThinPlate:
         out = points @ coef[n + 1 :] + coef[n]
         for i in range(0, len(points), _BLOCK):
             block = points[i : i + _BLOCK]
-            out[i : i + _BLOCK] += _kernel(_squared_distances(block, self.controls)) @ coef[:n]
+            out[i : i + _BLOCK] += _kernel(squared_distances(block, self.controls)) @ coef[:n]
         return out
