@@ -11,7 +11,6 @@ import dataclasses
 import itertools
 import json
 import logging
-import math
 import multiprocessing as mp
 import queue
 import tempfile
@@ -164,12 +163,8 @@ def _call(
                 endpoint.max_bps,
             )
             sent_frames = with_sound(itertools.chain(buffered, frames), sound, video.fps)
-            limit = args.frames or video.frame_count or math.inf
             sender = run_sender(
-                endpoint,
-                encoder,
-                _kept(sent_frames, keep),
-                read_to=lambda: int(min(limit, video.read_to)),
+                endpoint, encoder, _kept(sent_frames, keep), read_to=lambda: video.read_to
             )
             if keep is not None:
                 keep.close()
