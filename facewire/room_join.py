@@ -11,7 +11,6 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from facewire.protocol.packets import Snapshot
-    from facewire.room_peer import Peer
 
 #: Messages kept of a peer whose decoder is being built, decoded once it is (10 s and more of
 #: a stream; beyond, the oldest are dropped and the keyframe asked for starts the chain).
@@ -30,16 +29,16 @@ class Joining:
         self,
         name: str,
         kid: int,
-        build: Callable[[Joining], Peer | None],
+        record: Path | None,
+        build: Callable[[Joining], None],
         ready: Callable[[], None],
     ) -> None:
         self.name = name
         self.kid = kid
+        self.record = record  # where the newcomer's recording goes
         self.backlog: deque[tuple[str, bytes, int]] = deque(maxlen=JOIN_BACKLOG)
-        self.peer: Peer | None = None
-        #: What ``build`` read: the newcomer's snapshot, and where its recording goes.
+        #: What ``build`` read: the newcomer's snapshot.
         self.snapshot: Snapshot | None = None
-        self.record: Path | None = None
         self.error: Exception | None = None
         self.asked_keyframe = False  # set by ``build`` once its request is out
         self.done = threading.Event()
@@ -50,7 +49,7 @@ class Joining:
 
     def _run(self) -> None:
         try:
-            self.peer = self._build(self)
+            self._build(self)
         except Exception as exc:  # the receiving loop says it (or raises it)
             self.error = exc
         finally:
@@ -58,8 +57,5 @@ class Joining:
             self._ready()
 
     def discard(self) -> None:
-        """Wait for the build and close what it made, unused (the participant is leaving)."""
+        """Wait for the snapshot's read (the participant is leaving; nothing was built)."""
         self.thread.join()
-        if self.peer is not None:
-            self.peer.close()
-            self.peer.finish(play_out=False)

@@ -427,7 +427,7 @@ class RoomReceiver:
             # on: the one before may still be getting its sound. Names have no dots.
             again = self.figures[sender].sessions
             record = self.record_dir / (f"{sender}.{again + 1}.mp4" if again else f"{sender}.mp4")
-        joining = Joining(sender, kid, lambda j: self._build(j, record), self._wake)
+        joining = Joining(sender, kid, record, self._build, self._wake)
         joining.backlog.append((subject, data, arrival_us))
         self.joining[sender] = joining
         return None
@@ -435,7 +435,7 @@ class RoomReceiver:
     def _wake(self) -> None:
         self.inbox.put(_WAKE)
 
-    def _build(self, joining: Joining, record: Path | None) -> Peer | None:
+    def _build(self, joining: Joining) -> None:
         """On ``joining``'s thread: read and open its snapshot (a wait on the relay that
         must not hold the others' pictures up) and ask for the keyframe; the receiving loop
         builds the decoder (:meth:`_joined`). Built here too, one room's call once waited
@@ -443,21 +443,27 @@ class RoomReceiver:
         name = joining.name
         sealed = self.get_snapshot(name)
         if sealed is None:
-            return None
+            return
         snapshot = decode(self.opener.open(sealed, self.key.metadata(name, SNAPSHOT), False))
         if not isinstance(snapshot, Snapshot):
             raise PacketError(f"expected a Snapshot, got {type(snapshot).__name__}")
         self._request_keyframe(name, snapshot.seq)
         joining.asked_keyframe = True
-        joining.snapshot, joining.record = snapshot, record
-        return None
+        joining.snapshot = snapshot
 
     def _joined(self, joining: Joining) -> None:
         """``joining`` is done: the peer takes its place and its messages so far are decoded,
         or what went wrong is said (its messages are dropped; it is tried again later)."""
         name = joining.name
         del self.joining[name]
-        exc = joining.error
+        exc, peer = joining.error, None
+        if exc is None and joining.snapshot is not None:
+            try:
+                peer = Peer(
+                    name, joining.kid, joining.snapshot, joining.record, self.gallery, self.sound
+                )
+            except ValueError as refused:  # said below as the read's own errors are
+                exc = refused
         if isinstance(exc, SFrameError):
             self.locked[name] = time.monotonic()
             self._rejected(name, exc)
@@ -472,16 +478,8 @@ class RoomReceiver:
             return
         if exc is not None:
             raise exc
-        if joining.snapshot is None:
+        if peer is None:
             logger.info("%s sends but has no snapshot in the room's bucket yet", name)
-            return
-        try:
-            peer = Peer(
-                name, joining.kid, joining.snapshot, joining.record, self.gallery, self.sound
-            )
-        except ValueError as exc:  # a snapshot this decoder cannot take (another rig)
-            self.locked[name] = time.monotonic()
-            self.notify(f"{name} cannot be shown: {exc}")
             return
         figures = self.figures[name]
         if joining.asked_keyframe:
