@@ -65,6 +65,9 @@ HEAD_REACH = 1.4
 STILL_REACH = 2.4
 #: How much of the head's motion the bottom of the head ring (under the chin) follows.
 NECK_FOLLOW = 0.5
+#: The mouth's line: the outline's centre and this share of the way down to its lowest point.
+#: The head's motion is fitted above it (the jaw moves on its own).
+MOUTH_LINE = 0.35
 #: Beyond the still ring the head's part of the warp eases to nothing by this many times
 #: the ring's radius.
 FADE = 1.3
@@ -149,7 +152,7 @@ class SurroundWarp:
         self._still = (centre + STILL_REACH * (outline - centre))[::2]
         # 1 above the mouth, fading to NECK_FOLLOW at the ring's lowest point.
         bottom = self._head[:, 1].max()
-        mouth = centre[1] + 0.35 * (outline[:, 1].max() - centre[1])
+        mouth = mouth_line(outline)
         fade = np.clip((self._head[:, 1] - mouth) / max(bottom - mouth, 1e-6), 0.0, 1.0)
         self._follow = 1.0 - (1.0 - NECK_FOLLOW) * fade
         # The head's motion is fitted on the outline above the mouth; the ring's points sit
@@ -472,6 +475,22 @@ def unfolded(points: np.ndarray, shifts: np.ndarray, rank: np.ndarray) -> np.nda
         if keep[i]:
             keep[clash[i] & (rank > rank[i])] = False
     return keep
+
+
+def mouth_line(outline: np.ndarray) -> float:
+    """The image row of the mouth's line of a (k, 2+) face outline (MOUTH_LINE)."""
+    centre = float(outline[:, 1].mean())
+    return centre + MOUTH_LINE * (float(outline[:, 1].max()) - centre)
+
+
+def carried_by_head(points: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """(m,) bool: which of ``points`` (m, 2) lie where the warp carries the surroundings with the
+    head when the snapshot has a person layer (hair, ears, a hat): inside the still ring of
+    the face ``outline`` (k, 2+) and above its mouth's line."""
+    flat = np.asarray(outline, dtype=np.float64)[:, :2]
+    centre = flat.mean(0)
+    inside = reach_weight(points, centre, STILL_REACH * (flat - centre)) >= 1.0
+    return inside & (points[:, 1] < mouth_line(flat))
 
 
 def reach_weight(

@@ -1,23 +1,24 @@
 """Parts of the camera's picture the model cannot show, sent as they are (Refresh packets).
 
 The receiver's picture is the snapshot frame warped (models/surround.py) with the face drawn
-over it. What that frame never showed (a hand raised to the chin, an object held up, the
-scene a person uncovers, a light switched on) it cannot show. The sender rebuilds the
-receiver's surroundings as it does for the face's edge (no drawing, on the frame reduced to
-about 120 pixels wide, every fourth frame: 0.13 s is soon enough, and the
-sender has 16 ms a frame in all) and compares them with its frame in blocks, leaving out the
-drawn face. Each pixel's difference is the least over shifts of up to :data:`SLACK` pixels, so
-hair or a shoulder a pixel or two off (which the warp leaves, and the edge's corrections
-mend) does not count; a block whose mean difference stays above :data:`DIFF_LEVEL` for
-:data:`PERSIST_S` is the model's failure, not a moment's. The largest group of such blocks,
-grown by a block, is cut from the frame and sent as a WebP image of that area; the receiver
-shows it over its surroundings (under the face) from then on, and the sender compares
-against the picture with it. Where the model matches the frame again under a refresh (the
-hand went down), the area is given back to the model with an empty one, whatever the
-bucket holds; so is a refresh that no longer matches while the bucket cannot pay for a new
-one (the head moved on: frozen, it showed a piece of the head where it was). The images are
-paid from a token bucket of their own (:data:`REFRESH_KBPS`, with two seconds of credit: the
-first one goes at once, the ones after wait for its debt).
+over it. What that frame never showed (a hand raised to the chin, an object held up, the scene
+a person uncovers, a light switched on) it cannot show. The sender rebuilds the receiver's
+surroundings as it does for the face's edge (no drawing, on the frame reduced to about 120
+pixels wide, every fourth frame: 0.13 s is soon enough, and the sender has 16 ms a frame in
+all) and compares them with its frame in blocks, leaving out the drawn face and what the warp
+carries with the head (hair, ears: above the mouth, within the head's reach), where an area
+fixed in the frame goes stale as soon as the head moves. Each pixel's difference is the least
+over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a pixel or two off (which the
+warp leaves, and the edge's corrections mend) does not count; a block whose mean difference
+stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's failure, not a moment's.
+The largest group of such blocks, grown by a block, is cut from the frame and sent as a WebP
+image of that area; the receiver shows it over its surroundings (under the face) from then on,
+and the sender compares against the picture with it. Where the model matches the frame again
+under a refresh (the hand went down), the area is given back to the model with an empty one,
+whatever the bucket holds; so is a refresh that no longer matches while the bucket cannot pay
+for a new one (the head moved on: frozen, it showed a piece of the head where it was). The
+images are paid from a token bucket of their own (:data:`REFRESH_KBPS`, with two seconds of
+credit: the first one goes at once, the ones after wait for its debt).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import cv2
 import numpy as np
 
 from facewire.models.refresh import RefreshLayer
-from facewire.models.surround import SurroundWarp
+from facewire.models.surround import SurroundWarp, carried_by_head
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Refresh
 from facewire.sender.rate_cap import RateCap
@@ -155,7 +156,7 @@ class RefreshMeter:
         seen = self._reduced(image)
         failing = self._blocks(seen, shown) > DIFF_LEVEL
         face = self._face_blocks(poly)
-        failing &= ~face
+        failing &= ~(face | self._head_blocks(poly))
         self._failing = np.where(failing, self._failing + 1, 0)
         due = self._failing >= self._persist
         if not due.any():
@@ -204,6 +205,16 @@ class RefreshMeter:
         scaled = (poly[:, :2] / BLOCK - 0.5).round().astype(np.int32)
         cv2.fillPoly(mask, [scaled], 1)
         return mask.astype(bool)
+
+    def _head_blocks(self, poly: np.ndarray) -> np.ndarray:
+        """(rows, cols) bool: blocks whose centre the warp carries with the head (hair, ears:
+        models/surround.py). A refresh there, fixed in the frame, is stale as soon as the head
+        moves on: a turn showed a lock of hair the snapshot lacked, and each refresh of it
+        showed that lock where the head had been within a second, then went; resent at every
+        turn, it took a clip's whole budget."""
+        ys, xs = np.mgrid[: self.rows, : self.cols]
+        centres = (np.c_[xs.ravel(), ys.ravel()] + 0.5) * BLOCK - 0.5
+        return carried_by_head(centres, poly).reshape(self.rows, self.cols)
 
     def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``

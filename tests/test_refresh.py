@@ -115,6 +115,33 @@ def test_an_object_held_beside_the_face_is_shown_within_a_second_and_goes_with_i
     assert encoder.refresh is not None and encoder.refresh.bytes - sent[39] < 40
 
 
+@pytest.mark.parametrize(
+    ("x", "y", "refreshed"),
+    [(200, 30, False), (250, 110, True)],
+    ids=["beside-the-hair", "over-the-scene"],
+)
+def test_what_the_head_carries_is_left_to_the_warp(
+    photo: np.ndarray, x: int, y: int, refreshed: bool
+) -> None:
+    """Something new beside the hair, above the mouth (a lock of hair a turn shows) is not
+    refreshed: the warp carries that part of the picture with the head, and a refresh fixed in
+    the frame showed it where the head had been a moment later. On Claire each one went stale
+    within a second and came again at the next turn, all 1.4 kbit/s of the refreshes' budget.
+    The same thing over the scene, out of the head's reach, is refreshed."""
+    from facewire.sender.capture import CapturedFrame
+    from facewire.sender.encoder import FaceEncoder
+
+    held = photo.copy()
+    held[y : y + 40, x : x + 40] = photo[230:270, 20:60]  # a piece of the orange suit
+    encoder = FaceEncoder(SIDE, SIDE, 30.0)
+    assert encoder.start(CapturedFrame(0, photo, 0), seq=0) is not None
+    for i in range(1, 31):
+        encoder.encode(CapturedFrame(i, held, i * 33_333))
+        encoder.take_patches()
+    assert encoder.refresh is not None
+    assert (encoder.refresh.bytes > 0) == refreshed, encoder.refresh.bytes
+
+
 def test_a_receiver_that_asks_for_a_keyframe_gets_the_refreshes_again(photo: np.ndarray) -> None:
     """A lost refresh, or a lost empty one, is put right at the next keyframe a receiver asks
     for: the whole frame given back to the model, then every refresh shown, all of that
