@@ -8,7 +8,9 @@ An element's first byte says what it is:
 - ``0x31`` :class:`Fragment`: a slice of a version-2 packet too large for the datagram it
   would have gone in (a REM patch paid for a little at a time);
 - ``0x32`` :class:`Report`: the receiver's reception report, which the sender's rate control
-  reads (protocol/congestion.py).
+  reads (protocol/congestion.py);
+- ``0x33`` (:data:`HURRY`, the byte alone): the sender asks for reports at the faster beat for
+  a while (its rate control has something to follow: a queue, loss, a cut, the call's start).
 
 An empty bundle is valid: it opens the path or keeps it open.
 """
@@ -23,6 +25,7 @@ from facewire.protocol.packets import PacketError
 
 FRAGMENT = 0x31
 REPORT = 0x32
+HURRY = 0x33
 #: Largest datagram either end sends (QUIC's smallest allowed path MTU, RFC 9000 14): no IP
 #: fragmentation on any real path.
 MAX_DATAGRAM = 1200

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from facewire.protocol.bundle import (
     FRAGMENT,
     FRAGMENT_HEADER,
+    HURRY,
     MAX_DATAGRAM,
     MAX_REASSEMBLED,
     REPORT,
@@ -75,13 +76,20 @@ logger = logging.getLogger(__name__)
 
 #: A path with no authentic datagram for this long is down; the media go by ZeroMQ instead.
 #: Shorter than PEER_TIMEOUT_S, so the media are back on PUB before a receiver would give its
-#: peer up (the sender heartbeats at least every second, the receiver reports every 0.25 s).
+#: peer up (the sender heartbeats at least every second, the receiver reports every 0.5 s).
 PATH_TIMEOUT_S = 1.5
 #: The connecting end's empty datagrams while the path is not open yet, then while it is down.
 HELLO_INTERVAL_S = 0.1
 REPROBE_INTERVAL_S = 2.0
-#: The receiver's reception reports (what the rate control reads), one every so often.
-REPORT_INTERVAL_S = 0.25
+#: The receiver's reception reports (what the rate control reads), one every so often; at the
+#: faster beat for HURRY_HOLD_S after a datagram with a Hurry element (the sender's rate control
+#: has something to follow: RateController.wants_reports), which the sender puts in a datagram
+#: at most every HURRY_EVERY_S while it wants them.
+REPORT_INTERVAL_S = 0.5
+HURRIED_REPORT_INTERVAL_S = 0.25
+HURRY_HOLD_S = 1.0
+HURRY_EVERY_S = 0.25
+_HURRY_ELEMENT = bytes([HURRY])
 #: Bytes on the wire per datagram besides its bundle: IPv4, UDP and the datagram's own 12.
 DATAGRAM_COST = IP_UDP_BYTES + OVERHEAD
 #: The on-the-wire budget of one direction when none is given (the media of a call with sound
@@ -420,6 +428,7 @@ class Bundler:
     patches), as RFC 2198's redundant audio does, so one lost datagram loses nothing; the
     receiver drops the second copies. ``losing``: the receiver's reports show loss now (the
     repeats also run at a call's start, before any report): fewer frames share a datagram.
+    ``hurry``: ask for reports at the faster beat (a Hurry element every HURRY_EVERY_S).
     """
 
     def __init__(self, fps: float) -> None:
@@ -428,6 +437,8 @@ class Bundler:
         self._last_due: list[bytes] = []
         self.redundant = False
         self.losing = False
+        self.hurry = False
+        self._hurried = -math.inf
         self._patches: deque[tuple[int, bytes, int]] = deque()  # message, packet, offset sent
         self._message = 0
         self._frames = 0
@@ -488,6 +499,10 @@ class Bundler:
         out: list[bytes] = []
         elements: list[bytes] = []
         size = 0
+        if self.hurry and now - self._hurried >= HURRY_EVERY_S:
+            self._hurried = now
+            elements.append(_HURRY_ELEMENT)
+            size += element_size(len(_HURRY_ELEMENT))
         again = self._last_due if self.redundant else []
         room_again = sum(element_size(len(e)) for e in again + self._due)
         if room_again > MAX_DATAGRAM - OVERHEAD:
@@ -538,6 +553,7 @@ class ReceiverMediaPath(_Path):
         self.last_heard = -math.inf
         self._last_hello = -math.inf
         self._last_report = -math.inf
+        self._hurried_until = -math.inf
         self._reassembly = Reassembly()
         self._highest = 0
         self._arrival_ms = 0
@@ -588,6 +604,9 @@ class ReceiverMediaPath(_Path):
             if fresh:
                 self._opened(now)
             for element in elements:
+                if element == _HURRY_ELEMENT:
+                    self._hurried_until = now + HURRY_HOLD_S
+                    continue
                 packet = self._element(element)
                 if packet is not None:
                     out.append(packet)
@@ -622,12 +641,11 @@ class ReceiverMediaPath(_Path):
         if self._sealer is None:
             return
         if self.live(now):
-            if now - self._last_report >= REPORT_INTERVAL_S:
+            interval = HURRIED_REPORT_INTERVAL_S if now < self._hurried_until else REPORT_INTERVAL_S
+            if now - self._last_report >= interval:
                 # On the interval's beat, not from when the loop came by (it comes by when a
                 # datagram does: 3.5 reports a second), and never two at once after a stall.
-                self._last_report = max(
-                    self._last_report + REPORT_INTERVAL_S, now - REPORT_INTERVAL_S / 2
-                )
+                self._last_report = max(self._last_report + interval, now - interval / 2)
                 report = Report(self._highest, self._arrival_ms, self._received,
                                 self._received_bytes)  # fmt: skip
                 self._send(pack([bytes(report)]))

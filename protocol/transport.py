@@ -578,6 +578,7 @@ class SenderEndpoint(_Endpoint):
         live = self._media.live(now)
         self._bundler.redundant = any(p.controller.lossy for p in live)
         self._bundler.losing = any(p.controller.losing for p in live)
+        self._bundler.hurry = any(p.controller.wants_reports(now) for p in live)
         if self._refine:
             self._send_refinements(now)
         packing = self._media.budget_bps(now, self.max_bps, congested_only=True)

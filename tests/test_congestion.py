@@ -233,6 +233,40 @@ def test_repeats_run_from_the_start_until_the_reports_show_no_loss() -> None:
     assert steps[-1][1:] == (True, True)  # loss from 8 s on: repeats again, and fewer frames
 
 
+@pytest.mark.parametrize("report_every", [0.25, 0.5])
+def test_the_repeats_stop_after_as_many_seconds_whatever_the_reports_beat(
+    report_every: float,
+) -> None:
+    """The loss average weighs each report by the time it covers: reports at half the beat
+    stop the repeats of a clean call's start as soon (counted per report, at 0.5 s they ran
+    twice as long, doubling the frames' bytes for 5 s more)."""
+    controller = RateController()
+    stopped: list[float] = []
+
+    def watch(c: RateController, now: float) -> None:
+        if not c.lossy and not stopped:
+            stopped.append(now - T0)
+
+    simulate(controller, 12, report_every=report_every, extra=watch)
+    assert stopped and 4.0 < stopped[0] < 6.5, stopped
+
+
+def test_reports_are_wanted_at_the_faster_beat_only_while_there_is_something_to_follow() -> None:
+    """At the start (the repeats run), with a queue, and for a while after a cut: yes; on a
+    clean, steady link: no (it halves what the reports cost)."""
+    controller = RateController()
+    wanted: list[tuple[float, bool]] = []
+
+    def watch(c: RateController, now: float) -> None:
+        wanted.append((now - T0, c.wants_reports(now)))
+
+    simulate(controller, 16, delay=growing_queue(since=10, per_s=0.2), extra=watch)
+    assert wanted[0][1]  # the start
+    assert not any(w for t, w in wanted if 7.0 < t < 10.0)  # clean and steady
+    assert all(w for t, w in wanted if t > 10.5)  # the queue grows (and the cuts follow)
+    assert controller.decreases
+
+
 def test_at_most_one_decrease_per_hold() -> None:
     controller = RateController()
     steps = simulate(controller, 8, delay=growing_queue(since=1), report_every=0.0625)

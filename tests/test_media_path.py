@@ -18,6 +18,7 @@ import pytest
 from facewire.protocol.bundle import (
     FRAGMENT,
     FRAGMENT_HEADER,
+    HURRY,
     MAX_DATAGRAM,
     Fragment,
     Reassembly,
@@ -479,11 +480,11 @@ def test_reports_reach_the_senders_controller(call: Call) -> None:
     for i in range(60):  # 2 s at 30 frames a second, a datagram of 120 bytes each
         call.sender.send(pack([delta(i, 100)]), call.t)
         call.step(1 / FPS)
-    assert len(reports) >= 6  # one every 0.25 s
+    assert len(reports) >= 3  # one every 0.5 s
     highest, arrival_ms, received, nbytes = reports[-1]
-    assert received >= 55  # the datagrams since the key (the sender's hello answer too)
+    assert received >= 45  # the datagrams up to the last beat (the sender's hello answer too)
     datagram = element_size(100) + OVERHEAD
-    assert nbytes >= 55 * datagram
+    assert nbytes >= 45 * datagram
     # What crossed the link: the datagrams' IP and UDP headers counted, as the budget does.
     wire = datagram + IP_UDP_BYTES
     assert peer.controller.last.received_bps == pytest.approx(30 * 8 * wire, rel=0.1)
@@ -513,15 +514,34 @@ def test_a_receivers_datagram_with_anything_else_is_malformed(open_call: Call) -
     assert call.sender.keyframe_requests == []
 
 
-def test_four_reports_a_second_whenever_the_loop_comes_by(open_call: Call) -> None:
+@pytest.mark.parametrize("hurry", [False, True], ids=["steady", "hurried"])
+def test_reports_on_their_beat_whenever_the_loop_comes_by(open_call: Call, hurry: bool) -> None:
     """A receiver whose loop comes by once a datagram (every 67 ms) still reports on the
-    250 ms beat: 16 in 4 s, not one every fourth datagram (15)."""
+    500 ms beat: 8 in 4 s, not one every eighth datagram (7). While the sender's datagrams
+    ask for it (a Hurry element, here in every fourth), on the 250 ms beat: 16."""
     call = open_call
+    call.step(1.0)  # the beat after the path opened
     sent = len(call.to_sender)
     for i in range(60):
-        call.sender.send(pack([delta(i)]), call.t)
+        elements = [bytes([HURRY])] if hurry and i % 4 == 0 else []
+        call.sender.send(pack([*elements, delta(i)]), call.t)
         call.step(1 / 15)
-    assert len(call.to_sender) - sent in (16, 17)
+    assert len(call.to_sender) - sent in ((16, 17) if hurry else (8, 9))
+    assert call.receiver.malformed == 0
+    assert [delta(i) for i in range(60)] == call.packets[-60:]
+
+
+def test_the_sender_asks_for_reports_at_most_every_quarter_second() -> None:
+    """Hurry elements cost two bytes each: one in the first datagram of each 250 ms while the
+    rate control wants reports (at a datagram every 67 ms: every fourth), none otherwise."""
+    bundler = Bundler(FPS)
+    carried = []
+    for i in range(60):
+        bundler.hurry = i < 30
+        bundler.add(delta(i))
+        for bundle in bundler.end_frame(i / FPS, 64_000):
+            carried.append(bytes([HURRY]) in list(unpack(bundle)))
+    assert len(carried) == 60 and sum(carried[:30]) == 4 and not any(carried[30:])
 
 
 def test_arrival_is_when_the_datagram_came_not_when_the_loop_read_it(open_call: Call) -> None:
