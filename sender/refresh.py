@@ -156,9 +156,12 @@ class RefreshMeter:
         seen = self._reduced(image)
         failing = self._blocks(seen, shown) > DIFF_LEVEL
         face = self._face_blocks(poly)
-        failing &= ~(face | self._head_blocks(poly))
+        failing &= ~face
         self._failing = np.where(failing, self._failing + 1, 0)
         due = self._failing >= self._persist
+        # Nothing new is cut where the warp carries the surroundings with the head, but a
+        # refresh reaching in there that no longer matches is still given back or replaced.
+        due &= ~self._head_blocks(poly) | self._under_shown()
         if not due.any():
             return []
         (c0, r0, c1, r1), size = self._largest(due)
@@ -215,6 +218,14 @@ class RefreshMeter:
         ys, xs = np.mgrid[: self.rows, : self.cols]
         centres = (np.c_[xs.ravel(), ys.ravel()] + 0.5) * BLOCK - 0.5
         return carried_by_head(centres, poly).reshape(self.rows, self.cols)
+
+    def _under_shown(self) -> np.ndarray:
+        """(rows, cols) bool: blocks that a refresh shown now covers."""
+        under = np.zeros((self.rows, self.cols), bool)
+        for shown in self._shown:
+            c0, r0, c1, r1 = shown.blocks
+            under[r0:r1, c0:c1] = True
+        return under
 
     def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``

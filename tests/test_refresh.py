@@ -142,6 +142,27 @@ def test_what_the_head_carries_is_left_to_the_warp(
     assert (encoder.refresh.bytes > 0) == refreshed, encoder.refresh.bytes
 
 
+def test_a_refresh_the_head_moved_onto_is_given_back_when_it_no_longer_matches(
+    photo: np.ndarray,
+) -> None:
+    """A refresh made beside the head stays the sender's to take back when the head comes
+    over it: once the object is gone, the area is given back to the model. (Left out of the
+    comparison with the rest of what the head carries, such a refresh of Claire's hair top
+    stayed on, a lock floating beside her head, to the clip's end.)"""
+    from facewire.sender.refresh import RefreshMeter
+
+    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[160 + 36 * np.cos(angles), 93 + 40 * np.sin(angles), np.zeros(36)]
+    held = photo.copy()
+    held[40:80, 256:296] = photo[230:270, 20:60]  # a piece of the suit, beside the head
+    meter = RefreshMeter(photo, outline, np.zeros(photo.shape[:2]), 30.0)
+    made = [p for i in range(1, 16) for p in meter.measure(i, held, outline, None, None)]
+    assert [p.clears for p in made] == [False]
+    moved = outline + [70, 0, 0]  # the head came over it (the warp moves the picture too)
+    later = [p for i in range(16, 46) for p in meter.measure(i, photo, moved, None, None)]
+    assert any(p.clears and (p.x, p.y) == (made[0].x, made[0].y) for p in later), later
+
+
 def test_a_receiver_that_asks_for_a_keyframe_gets_the_refreshes_again(photo: np.ndarray) -> None:
     """A lost refresh, or a lost empty one, is put right at the next keyframe a receiver asks
     for: the whole frame given back to the model, then every refresh shown, all of that
