@@ -104,7 +104,7 @@ from facewire.protocol.media_path import (
     DATAGRAM_COST,
     DEFAULT_BUDGET_BPS,
     HELLO_INTERVAL_S,
-    REPORT_INTERVAL_S,
+    HURRIED_REPORT_INTERVAL_S,
     Bundler,
     ReceiverMediaPath,
     SenderMediaPath,
@@ -1238,7 +1238,7 @@ class ReceiverEndpoint(_Endpoint):
                     if remaining <= 0:
                         return None
                     # Wake for the media path's reports and hellos too.
-                    self._poller.poll(min(remaining, _ms(REPORT_INTERVAL_S / 2)))
+                    self._poller.poll(min(remaining, _ms(HURRIED_REPORT_INTERVAL_S / 2)))
                     continue
             if packet is not None:
                 return packet
