@@ -603,6 +603,8 @@ class ReceiverMediaPath(_Path):
             self._received_bytes += len(data)
             if fresh:
                 self._opened(now)
+                # The sender's rate control knows nothing yet: the faster beat until it says.
+                self._hurried_until = now + HURRY_HOLD_S
             for element in elements:
                 if element == _HURRY_ELEMENT:
                     self._hurried_until = now + HURRY_HOLD_S

@@ -531,6 +531,19 @@ def test_reports_on_their_beat_whenever_the_loop_comes_by(open_call: Call, hurry
     assert [delta(i) for i in range(60)] == call.packets[-60:]
 
 
+def test_a_path_just_opened_reports_at_the_faster_beat(open_call: Call) -> None:
+    """Before the sender's rate control has said anything, a thin link fills fastest: the
+    first second after the path opens has four reports a second, with no Hurry element. (At
+    two, a 16 kbit/s link's first queue went unseen long enough to drop datagrams, and the
+    call lost frames and asked for keyframes for 26 s, 1.2 s behind.)"""
+    call = open_call
+    sent = len(call.to_sender)
+    for i in range(14):  # 0.93 s
+        call.sender.send(pack([delta(i)]), call.t)
+        call.step(1 / 15)
+    assert len(call.to_sender) - sent >= 3
+
+
 def test_the_sender_asks_for_reports_at_most_every_quarter_second() -> None:
     """Hurry elements cost two bytes each: one in the first datagram of each 250 ms while the
     rate control wants reports (at a datagram every 67 ms: every fourth), none otherwise."""
