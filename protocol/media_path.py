@@ -82,9 +82,9 @@ PATH_TIMEOUT_S = 1.5
 HELLO_INTERVAL_S = 0.1
 REPROBE_INTERVAL_S = 2.0
 #: The receiver's reception reports (what the rate control reads), one every so often; at the
-#: faster beat for HURRY_HOLD_S after a datagram with a Hurry element (the sender's rate control
-#: has something to follow: RateController.wants_reports), which the sender puts in a datagram
-#: at most every HURRY_EVERY_S while it wants them.
+#: faster beat for HURRY_HOLD_S after the path opens and after a datagram with a Hurry element
+#: (the sender's rate control has something to follow: RateController.wants_reports), which the
+#: sender puts in a datagram at most every HURRY_EVERY_S while it wants them.
 REPORT_INTERVAL_S = 0.5
 HURRIED_REPORT_INTERVAL_S = 0.25
 HURRY_HOLD_S = 1.0
