@@ -38,8 +38,12 @@ logger = logging.getLogger(__name__)
 #: The most frames one gap may fill with the held picture (beyond it the recording jumps:
 #: a hostile or broken sequence number must not write millions of frames).
 MAX_HOLD_FRAMES = 300
-#: Keyframe requests while the chain is broken are repeated at most this often.
+#: Keyframe requests while the chain is broken are repeated after this long, then twice as long
+#: each time up to KEYFRAME_RETRY_MAX_S: each request brings a keyframe and every eye and
+#: mouth patch again, and on a full 16 kbit/s link four a second kept it full (tbf dropping,
+#: the chain breaking again) for 25 s.
 KEYFRAME_RETRY_S = 0.25
+KEYFRAME_RETRY_MAX_S = 2.0
 #: While waiting for a session, how often a stop request is looked at.
 STOP_CHECK_S = 0.5
 #: A receive that blocked this long (µs) saw its packet come while it waited.
@@ -492,6 +496,7 @@ def _receive_session(
             player.scene_still(decoder.reference)
         endpoint.request_keyframe(snapshot.seq)
         last_request = time.monotonic()
+        retry_s = KEYFRAME_RETRY_S
         broken = False  # the chain broke since the last frame decoded
         needed = snapshot.seq  # the first frame not decoded yet
         while True:
@@ -531,11 +536,13 @@ def _receive_session(
                     packet = endpoint.recv(timeout_ms=0)
             except RejoinNeeded as exc:
                 return player.ended(f"sender restarted ({exc})", exc.session)
-            if not decoder.channels.intact:
-                if time.monotonic() - last_request > KEYFRAME_RETRY_S:
-                    endpoint.request_keyframe(needed)
-                    report.keyframe_requests += 1
-                    last_request = time.monotonic()
+            if decoder.channels.intact:
+                retry_s = KEYFRAME_RETRY_S
+            elif time.monotonic() - last_request > retry_s:
+                endpoint.request_keyframe(needed)
+                report.keyframe_requests += 1
+                last_request = time.monotonic()
+                retry_s = min(2 * retry_s, KEYFRAME_RETRY_MAX_S)
             player.run(playout.poll(now_us()), endpoint)
             _note_playout(report, playout)
             if isinstance(packet, Bye):

@@ -29,7 +29,7 @@ from call_helpers import (
     wait_ready,
 )
 
-from facewire.protocol.packets import Snapshot
+from facewire.protocol.packets import DeltaFrame, KeyFrame, RemPatch, Snapshot
 from facewire.protocol.transport import SenderEndpoint
 
 FRAMES = 240
@@ -128,6 +128,38 @@ def test_one_second_bursts_of_total_loss(tmp_path: Path, keys: Keys) -> None:
     for burst in bursts:  # each burst froze the picture from its first lost frame
         assert any(first <= burst.start < first + length for first, length in report["freezes"])
     check_pictures(snapshot, link, report, video)
+
+
+class KeyframesLost(LossyLink):
+    """Loses frame 60's packets, then every keyframe up to frame 180 (a full thin link drops
+    the large packets): the chain stays broken for 4 s while the small deltas get through."""
+
+    def __call__(self, packet: KeyFrame | DeltaFrame | RemPatch) -> None:
+        if 60 <= self.seq < 180 and (self.seq == 60 or isinstance(packet, KeyFrame)):
+            self.sent.append((self.seq, bytes(packet)))
+            self.lost.append(self.seq)
+        else:
+            super().__call__(packet)
+
+
+def test_a_chain_broken_for_long_asks_for_keyframes_less_and_less_often(
+    tmp_path: Path, keys: Keys
+) -> None:
+    """The receiver asks again after 0.25 s, then twice as long each time (up to 2 s), not
+    four times a second: each request brings a keyframe and every patch again, which kept a
+    full 16 kbit/s link full. The picture comes back once keyframes get through."""
+    encoder, snapshot, frames = start_sender(FRAMES)
+    with SenderEndpoint(HOST, **keys.sender()) as endpoint:
+        endpoint.set_snapshot(snapshot)
+        receiver = ReceiverProcess(endpoint.ports, tmp_path / "out.mp4", **keys.receiver())
+        wait_ready(endpoint, receiver)
+        link = KeyframesLost(endpoint)
+        send(endpoint, encoder, frames, link)
+        report = receiver.report()
+    assert report["frames_out"] == FRAMES
+    check_freezes(report, snapshot, link.lost)
+    # 4 s broken: requests at 0, 0.25, 0.75, 1.75 and 3.75 s, and one after (16 at 0.25 s).
+    assert report["keyframe_requests"] <= 8, report["keyframe_requests"]
 
 
 def test_receiver_killed_and_a_new_one_joins_late(tmp_path: Path, keys: Keys) -> None:
