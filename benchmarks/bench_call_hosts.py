@@ -8,7 +8,8 @@ netem's delay 40 ms ± 10 ms each way, without and with 5% loss each way (tests/
 ``tc netem`` on a veth pair where the kernel has netem, else a TUN pair and a user-space
 relay applying the same model). The namespaces share CLOCK_MONOTONIC, so the receiver's
 latency (capture to rendered frame) is measured directly. Prints, per link, frames out, the
-latency percentiles, freezes (runs of frames shown stale) and the receiver's own frame rate.
+latency percentiles, freezes (runs of frames shown stale), the receiver's own frame rate and
+the sound's frames played and concealed.
 Needs root for the namespaces; prints why and measures loopback only otherwise.
 """
 
@@ -64,6 +65,14 @@ def _kbps(run: dict, channel: str) -> float:
     return run["bytes_received"].get(channel, 0) * 8 / (run["frames_out"] / FPS) / 1000
 
 
+def _sound(run: dict) -> str:
+    """The sound's 20 ms frames played and concealed: concealment covers a lost or late
+    packet, and also the first frames of each pause the sender's Opus left silent (DTX), so
+    a lossy run is compared with the loopback run's count, not with its own sum."""
+    audio = run.get("audio") or {}
+    return f"sound {audio.get('played', 0)} frames played, {audio.get('concealed', 0)} concealed"
+
+
 def show(name: str, runs: list[dict], relayed: list[str]) -> None:
     for i, r in enumerate(runs):
         lat = r["latency_ms"]
@@ -75,8 +84,8 @@ def show(name: str, runs: list[dict], relayed: list[str]) -> None:
             f"freezes {len(freezes)} (longest {max(freezes, default=0)} frames), "
             f"receiver {r['receiver_fps']:.0f} fps; second path: {spare['late_frames']} late "
             f"frames, {spare['saved']} frames it brought {LATE_FRAME_MS}+ ms sooner, "
-            f"{_kbps(r, 'spare'):.2f} kbit/s of copies (geometry {_kbps(r, 'geometry'):.2f})"
-            + (f"; link {relayed[i]}" if relayed and relayed[i] else "")
+            f"{_kbps(r, 'spare'):.2f} kbit/s of copies (geometry {_kbps(r, 'geometry'):.2f}); "
+            f"{_sound(r)}" + (f"; link {relayed[i]}" if relayed and relayed[i] else "")
         )
 
 
