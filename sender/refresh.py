@@ -5,20 +5,20 @@ over it. What that frame never showed (a hand raised to the chin, an object held
 a person uncovers, a light switched on) it cannot show. The sender rebuilds the receiver's
 surroundings as it does for the face's edge (no drawing, on the frame reduced to about 120
 pixels wide, every fourth frame: 0.13 s is soon enough, and the sender has 16 ms a frame in
-all) and compares them with its frame in blocks, leaving out the drawn face and what the warp
-carries with the head (hair, ears: above the mouth, within the head's reach), where an area
-fixed in the frame goes stale as soon as the head moves. Each pixel's difference is the least
-over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a pixel or two off (which the
-warp leaves, and the edge's corrections mend) does not count; a block whose mean difference
-stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's failure, not a moment's.
-The largest group of such blocks, grown by a block, is cut from the frame and sent as a WebP
-image of that area; the receiver shows it over its surroundings (under the face) from then on,
-and the sender compares against the picture with it. Where the model matches the frame again
-under a refresh (the hand went down), the area is given back to the model with an empty one,
-whatever the bucket holds; so is a refresh that no longer matches while the bucket cannot pay
-for a new one (the head moved on: frozen, it showed a piece of the head where it was). The
-images are paid from a token bucket of their own (:data:`REFRESH_KBPS`, with two seconds of
-credit: the first one goes at once, the ones after wait for its debt).
+all) and compares them with its frame in blocks, leaving out the drawn face; nothing new is cut
+where the warp carries the surroundings with the head (hair, ears: above the mouth, within the
+head's reach), as an area fixed in the frame there goes stale when the head moves. Each pixel's
+difference is the least over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a
+pixel or two off (which the warp leaves, and the edge's corrections mend) does not count; a
+block whose mean difference stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's
+failure, not a moment's. The largest group of such blocks, grown by a block, is cut from the
+frame and sent as a WebP image of that area; the receiver shows it over its surroundings (under
+the face) from then on, and the sender compares against the picture with it. Where the model
+matches the frame again under a refresh (the hand went down), the area is given back to the
+model with an empty one, whatever the bucket holds; so is a refresh that no longer matches
+while the bucket cannot pay for a new one (the head moved on: frozen, it showed a piece of the
+head where it was). The images are paid from a token bucket of their own (:data:`REFRESH_KBPS`,
+with two seconds of credit: the first one goes at once, the ones after wait for its debt).
 """
 
 from __future__ import annotations
