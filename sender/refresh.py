@@ -101,6 +101,8 @@ class RefreshMeter:
         )
         self.cols, self.rows = self.size[0] // BLOCK, self.size[1] // BLOCK
         self._failing = np.zeros((self.rows, self.cols), np.int32)
+        ys, xs = np.mgrid[: self.rows, : self.cols]
+        self._block_centres = (np.c_[xs.ravel(), ys.ravel()] + 0.5) * BLOCK - 0.5  # work pixels
         self._persist = max(1, round(PERSIST_S * fps / EVERY))
         self._frames = 0
         self.bucket = RateCap(kbps, fps, BUCKET_S)
@@ -215,9 +217,7 @@ class RefreshMeter:
         moves on: a turn showed a lock of hair the snapshot lacked, and each refresh of it
         showed that lock where the head had been within a second, then went; resent at every
         turn, it took a clip's whole budget."""
-        ys, xs = np.mgrid[: self.rows, : self.cols]
-        centres = (np.c_[xs.ravel(), ys.ravel()] + 0.5) * BLOCK - 0.5
-        return carried_by_head(centres, poly).reshape(self.rows, self.cols)
+        return carried_by_head(self._block_centres, poly).reshape(self.rows, self.cols)
 
     def _under_shown(self) -> np.ndarray:
         """(rows, cols) bool: blocks that a refresh shown now covers."""
