@@ -9,6 +9,7 @@ import signal
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from facewire.protocol.constants import AUDIO_RATE
@@ -103,7 +104,9 @@ def test_each_voice_is_heard_and_recorded_with_its_face(
     recording carries that one's voice, not the other's, beside the same frames it was sent
     with; everyone played everyone's sound (mixed into the device, or a null sink where there is
     none, as on this machine)."""
-    voices = {"alice": talking_voice(), "bob": talking_voice(swapped=True)}
+    # Three times over (12 s): with one 4 s clip, Alice once said all and left before Bob's
+    # process had joined, and Carol, with no one left, left before Bob came.
+    voices = {"alice": np.tile(talking_voice(), 3), "bob": np.tile(talking_voice(swapped=True), 3)}
     record = tmp_path / "carol-hears"
     alice = bob = carol = None
     try:
@@ -112,7 +115,7 @@ def test_each_voice_is_heard_and_recorded_with_its_face(
         carol.expect("receiving only")
         speakers = []
         for name, voice in voices.items():
-            clip = talking_clip(tmp_path / f"{name}-says.mp4", voice)
+            clip = talking_clip(tmp_path / f"{name}-says.mp4", voice, times=3)
             speakers.append(
                 _join(relay, key, name, "--input", str(clip), tmp=tmp_path, size=SPEAKING)
             )

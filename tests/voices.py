@@ -35,17 +35,18 @@ def talking_voice(swapped: bool = False) -> np.ndarray:
     return voice
 
 
-def talking_clip(path: Path, voice: np.ndarray) -> Path:
-    """The bundled clip's talking part (frames 180-299) with ``voice`` as the file's own
-    audio track: a clip that speaks from its first frame, as a call often does."""
+def talking_clip(path: Path, voice: np.ndarray, times: int = 1) -> Path:
+    """The bundled clip's talking part (frames 180-299), ``times`` over, with ``voice`` as the
+    file's own audio track: a clip that speaks from its first frame, as a call often does."""
     import cv2
 
     from facewire.sender.capture import VideoSource
 
+    talking = [f.image for f in VideoSource(demo_clip_path()).frames()
+               if f.index >= TALKING_FROM_FRAME]  # fmt: skip
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 30.0, (640, 480))
-    for frame in VideoSource(demo_clip_path()).frames():
-        if frame.index >= TALKING_FROM_FRAME:
-            writer.write(frame.image)
+    for image in talking * times:
+        writer.write(image)
     writer.release()
     mux_audio(path, voice)
     return path
