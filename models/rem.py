@@ -34,12 +34,14 @@ import cv2
 import numpy as np
 
 from facewire.models.rig import Rig
+from facewire.protocol.constants import REM_REGIONS
 
 logger = logging.getLogger(__name__)
 
-EYE_RIGHT, EYE_LEFT, MOUTH, MOUTH_INTERIOR = "eye_right", "eye_left", "mouth", "mouth_interior"
-#: Every region a layout can hold, in the order patches are considered.
-REGION_NAMES = (EYE_RIGHT, EYE_LEFT, MOUTH, MOUTH_INTERIOR)
+#: Every region a layout can hold, in the order patches are considered (a RemPatch names one
+#: by its place here).
+REGION_NAMES = REM_REGIONS
+EYE_RIGHT, EYE_LEFT, MOUTH, MOUTH_INTERIOR = REGION_NAMES
 #: The regions patches are sent for: those ``facewire rem-map`` finds to be REMs on real
 #: footage (texture change at least 1.5 times the shape change and the face's typical
 #: texel's). The lips are not one (their change is mostly shape), the mouth's inside is.

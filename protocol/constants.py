@@ -86,6 +86,14 @@ REM_CODECS: Final = ("jpeg", "png", "webp")
 #: A REM patch's "codec" when it shows an earlier patch of its region again (data: that
 #: patch's frame number).
 REM_REFERENCE: Final = "ref"
+#: A RemPatch's codec byte: the index in this table.
+REM_CODES: Final = (REM_REFERENCE, *REM_CODECS)
+#: The REM regions (models/rem.py lays them out); a RemPatch's region byte is the index here.
+REM_REGIONS: Final = ("eye_right", "eye_left", "mouth", "mouth_interior")
+#: The colour figures a RemPatch carries travel as u16: hue in hundredths of a degree,
+#: saturation and value in 65535ths.
+REM_HUE_STEP: Final = 0.01
+REM_UNIT_STEPS: Final = 65535
 #: Images of each REM region both ends hold besides the snapshot's texture (a reference may
 #: name one): the newest ones, in the order their patches were sent.
 REM_CACHE: Final = 6

@@ -10,7 +10,7 @@ texels moved by more than :data:`CHANGE_LEVEL` of luma (a blink, a glance, the m
 opening; :meth:`RemEncoder.change`). The mouth's inside counts only while the mouth is open.
 What it shows now may be an image the receiver already holds: each end keeps the last
 REM_CACHE images of every region and the snapshot's (an eye open again after a blink looks
-as it did before it), and then a 37-byte reference to it goes instead of an image. An image
+as it did before it), and then a 17-byte reference to it goes instead of an image. An image
 is coded as WebP at the best quality of :data:`QUALITIES` that fits its share of the bucket
 (a 30-200 byte patch is mostly header as a JPEG; docs/what-we-tried.md, "REM patches: how
 to code one").
@@ -50,15 +50,17 @@ from facewire.sender.texture import UvRasteriser
 logger = logging.getLogger(__name__)
 
 #: All REM traffic, payload, on average (DESIGN.md: at most 4 kbit/s); kept under it by what a
-#: blink may borrow (BLINK_DEBT_S) and the repeats keyframes owe: foreman's 6 s came to 4.07
-#: kbit/s at 3.9, 3.88 at 3.7.
-BUDGET_KBPS = 3.7
+#: blink may borrow (BLINK_DEBT_S) and the repeats keyframes owe. 3.0 since RemPatch is
+#: binary (13 bytes of header, not 35-41): the same patches as 3.7 bought before, about
+#: (eyes SSIM over five real clips within 0.003 of before or better, but for carphone's, which
+#: moves by 0.015 from one budget to the next either way; docs/what-we-tried.md).
+BUDGET_KBPS = 3.0
 #: The mouth's inside has a bucket of its own, filled at this (payload, on average), beside
 #: the eyes' BUDGET_KBPS: sharing theirs, it waited behind them for as long as the mouth stayed
 #: open, and the open mouth showed the snapshot's shut lips stretched (a dark blob, no
 #: teeth). Images it sent once come back as references (REM_CACHE of them), so a talking
 #: mouth soon costs a few bytes a change.
-MOUTH_BUDGET_KBPS = 1.5
+MOUTH_BUDGET_KBPS = 1.2
 #: The mouth's bucket holds this many seconds of its budget: a large face's inside (a few
 #: hundred bytes) must fit.
 MOUTH_BUCKET_S = 5.0
@@ -98,9 +100,9 @@ SETTLE_FRAMES = 2
 #: The mouth's inside is looked at only while it is open: its area on screen at least this
 #: fraction of the mouth's width squared.
 MOUTH_OPEN = 0.06
-#: Bytes a RemPatch adds around its image (header byte, msgpack array, seq, region name,
-#: codec, the image's length and three float32), about.
-PACKET_OVERHEAD = 40
+#: Bytes a RemPatch adds around its image (header byte, region, codec, seq and the three
+#: colour figures).
+PACKET_OVERHEAD = 13
 #: Texels on triangles seen more obliquely than this cosine keep the receiver's content.
 MIN_FACING = 0.15
 #: Time constant, seconds, of the reference colour the patches carry: each frame's

@@ -64,7 +64,7 @@ def rem_patch(seed: int, side: int = 40) -> bytes:
     pixels = np.random.default_rng(seed).integers(0, 256, (side, side, 3), dtype=np.uint8)
     ok, png = cv2.imencode(".png", pixels)
     assert ok
-    return bytes(RemPatch(seed, "left_eye", "png", png.tobytes(), 10.0, 0.5, 0.5))
+    return bytes(RemPatch(seed, "eye_left", "png", png.tobytes(), 10.0, 0.5, 0.5))
 
 
 def packets_of(bundles: list[bytes], reassembly: Reassembly | None = None) -> list[bytes]:
@@ -272,7 +272,7 @@ def test_a_narrowed_budget_is_followed() -> None:
 
 def test_small_patch_goes_whole() -> None:
     bundler = Bundler(FPS)
-    patch = bytes(RemPatch.referring(9, "left_eye", 3, 1.0, 0.5, 0.5))
+    patch = bytes(RemPatch.referring(9, "eye_left", 3, 1.0, 0.5, 0.5))
     bundler.add_patch(patch)
     run = run_bundler(bundler, 64_000, 1.0, 20)
     assert patch in [e for _, b in run for e in unpack(b)]

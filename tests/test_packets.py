@@ -13,7 +13,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from facewire.protocol.constants import MAX_PACKET_BYTES
+from facewire.protocol.constants import MAX_PACKET_BYTES, REM_CODES, REM_REGIONS
 from facewire.protocol.images import ImageError, check_image, image_size
 from facewire.protocol.packets import (
     Bye,
@@ -97,7 +97,7 @@ def _snapshots(channels: list, reference: list) -> st.SearchStrategy[Snapshot]:
 rem_patches = st.builds(
     RemPatch,
     seq=uint32,
-    region=names,
+    region=st.sampled_from(REM_REGIONS),
     codec=st.just("jpeg"),
     data=st.just(JPEG),
     h_peak=st.floats(0, 360),
@@ -169,7 +169,7 @@ EXAMPLES = {
         counter=3, session_id=42, seq=101, capture_us=1_700_000_123_456, body=b"\x81\x7f\x10"
     ),
     "delta_frame": DeltaFrame(counter=4, body=b"\x12\x34"),
-    "rem_patch": RemPatch(101, "eyes", "jpeg", JPEG, 12.5, 0.25, 0.75),
+    "rem_patch": RemPatch(101, "eye_right", "jpeg", JPEG, 12.5, 0.25, 0.75),
     "rem_patch_reference": RemPatch.referring(102, "eye_left", 96, 12.5, 0.25, 0.75),
     "keyframe_request": KeyframeRequest(99),
     "heartbeat": Heartbeat(42, 101, 1_700_000_999_000),
@@ -210,6 +210,12 @@ def pack(kind: int, *items: object) -> bytes:
     return bytes([0x20 | kind]) + data
 
 
+def rem(seq: int, region: int, codec: str | int, data: bytes, s_mean: int = 0x8000) -> bytes:
+    """A RemPatch's bytes as docs/protocol.md lays them out (codec by name or by code)."""
+    code = REM_CODES.index(codec) if isinstance(codec, str) else codec
+    return b"\x23" + struct.pack("<BBIHHH", region, code, seq, 100, s_mean, 0x8000) + data
+
+
 V1_HEARTBEAT = msgpack.packb([1, 5, 1, 2])
 
 
@@ -238,20 +244,18 @@ V1_HEARTBEAT = msgpack.packb([1, 5, 1, 2])
         (b"\x26\x91\x82\xa1a\x01\xa1a\x02", "duplicate map key 'a'"),
         (pack(6, {"fps": float("nan")}), "ReceiverStats.values['fps']: expected a finite"),
         (pack(6, {"fps": "30"}), "ReceiverStats.values['fps']: expected float, got str"),
-        (pack(3, 1, "eyes", "h264", JPEG, 1.0, 0.5, 0.5), "RemPatch.codec: unknown codec"),
+        (rem(1, 0, 9, JPEG), "RemPatch.codec: unknown codec 9"),
+        (rem(1, 4, "jpeg", JPEG), "RemPatch.region: unknown region 4"),
+        (b"\x23\x00\x01" + bytes(4) + b"\xff\xff" + bytes(4) + JPEG, "RemPatch.h_peak: 655.35"),
+        (rem(1, 0, "jpeg", PNG), "RemPatch.data: a png image, expected jpeg"),
+        (rem(1, 0, "png", b""), "truncated RemPatch: 13 bytes, needs at least 14"),
         (
-            pack(3, 1, "eyes", "jpeg", PNG, 1.0, 0.5, 0.5),
-            "RemPatch.data: a png image, expected jpeg",
-        ),
-        (pack(3, 1, "eyes", "png", b"", 1.0, 0.5, 0.5), "RemPatch.data: must not be empty"),
-        (
-            pack(3, 1, "eyes", "png", png_header(16384, 16384), 1.0, 0.5, 0.5),
+            rem(1, 0, "png", png_header(16384, 16384)),
             "RemPatch.data: png image of 16384x16384 pixels, each side must be in [1, 4096]",
         ),
-        (pack(3, 1, "eyes", "jpeg", JPEG, 1.0, 1.5, 0.5), "RemPatch.s_mean: 1.5 outside"),
-        (pack(3, 9, "eyes", "ref", b"\x05\x00\x00", 1.0, 0.5, 0.5), "RemPatch.data: a refer"),
+        (rem(9, 1, "ref", b"\x05\x00\x00"), "RemPatch.data: a reference is 4 bytes, got 3"),
         (
-            pack(3, 9, "eyes", "ref", b"\x0a\x00\x00\x00", 1.0, 0.5, 0.5),
+            rem(9, 1, "ref", b"\x0a\x00\x00\x00"),
             "RemPatch.data: a reference to a later frame than its own",
         ),
         (b"\x25\x93\x01\x05\xd4\x01\x02", "malformed msgpack: 2 exceeds max_ext_len(0)"),
@@ -289,11 +293,45 @@ def test_a_binary_packet_a_byte_short_of_its_fixed_fields_is_refused(name: str) 
         ), length
 
 
+@pytest.mark.parametrize("name", ["rem_patch", "rem_patch_reference"])
+def test_a_rem_patch_cut_short_is_refused(name: str) -> None:
+    """Its fixed fields cut short, whatever the cut; a reference cut short too (an image cut
+    inside its pixels may still have a valid header: the receiver's decoder refuses it)."""
+    data = (FIXTURES / f"{name}.bin").read_bytes()
+    for length in range(1, 14):
+        with pytest.raises(PacketError) as info:
+            decode(data[:length])
+        plural = "byte" if length == 1 else "bytes"
+        assert str(info.value) == f"truncated RemPatch: {length} {plural}, needs at least 14"
+    if name == "rem_patch_reference":
+        for length in range(14, len(data)):
+            with pytest.raises(PacketError, match="a reference is 4 bytes"):
+                decode(data[:length])
+
+
+def test_a_rem_patch_is_made_only_of_what_can_travel() -> None:
+    """Its region is one of the table's, its colour figures in range, its image not empty;
+    the figures are rounded to the steps they travel in, so that a packet equals its copy."""
+    for region, codec, data, s_mean, message in [
+        ("eyes", "jpeg", JPEG, 0.5, "RemPatch.region: unknown region 'eyes'"),
+        ("eye_left", "png", b"", 0.5, "RemPatch.data: must not be empty"),
+        ("eye_left", "jpeg", JPEG, 1.5, "RemPatch.s_mean: 1.5 outside"),
+        ("eye_left", "h264", JPEG, 0.5, "RemPatch.codec: unknown codec 'h264'"),
+    ]:
+        with pytest.raises(PacketError, match=message):
+            RemPatch(1, region, codec, data, 10.0, s_mean, 0.5)
+    patch = RemPatch(1, "mouth_interior", "jpeg", JPEG, 359.987654, 1 / 3, 1.0)
+    assert (patch.h_peak, patch.s_mean, patch.v_mean) == pytest.approx(
+        (359.99, 1 / 3, 1.0), abs=1e-5
+    )
+    assert decode(bytes(patch)) == patch
+
+
 def test_every_msgpack_packet_a_byte_short_is_refused() -> None:
     """msgpack packets say their own length: one byte short is an error, whichever kind."""
     for path in sorted(FIXTURES.glob("*.bin")):
         data = path.read_bytes()
-        if path.stem in SHORTEST:
+        if path.stem in SHORTEST or path.stem.startswith("rem_patch"):
             continue
         with pytest.raises(PacketError, match=r"truncated packet|needs|expected"):
             decode(data[:-1])
@@ -411,7 +449,7 @@ def test_decode_takes_an_image_exactly_when_its_header_checks(
         (Snapshot, snapshot_fields(texture=blob), codec is not None)
     ]
     named = image_size(image)[0]
-    patch = pack(3, 1, "eyes", named, blob, 1.0, 0.5, 0.5)
+    patch = rem(1, 0, named, blob)
     cases.append((RemPatch, patch, codec == named))
     for kind, data, good in cases:
         if good:
@@ -428,7 +466,7 @@ def test_oversized() -> None:
     assert str(info.value) == (
         f"packet of {MAX_PACKET_BYTES + 1} bytes exceeds the limit of {MAX_PACKET_BYTES} bytes"
     )
-    big = RemPatch(1, "eyes", "jpeg", JPEG + bytes(MAX_PACKET_BYTES), 0.0, 0.0, 0.0)
+    big = RemPatch(1, "eye_left", "jpeg", JPEG + bytes(MAX_PACKET_BYTES), 0.0, 0.0, 0.0)
     with pytest.raises(PacketError, match="exceeds the limit"):
         bytes(big)
 

@@ -194,7 +194,6 @@ def test_patches_it_cannot_use_are_counted_and_dropped(
     huge = np.zeros((40 * box.height, 40 * box.width, 3), np.uint8)
     flipped = good.data[:30] + bytes(x ^ 0xFF for x in good.data[30:])
     hostile = [
-        dataclasses.replace(good, region="nose"),  # a region that does not exist
         dataclasses.replace(good, seq=99),  # from before the snapshot
         dataclasses.replace(good, data=flipped),  # a corrupt image (its header checks)
         dataclasses.replace(good, data=encode_webp(huge, 10)),  # far larger than its region
@@ -204,7 +203,6 @@ def test_patches_it_cannot_use_are_counted_and_dropped(
         assert decode(bytes(packet)) == packet  # each is a well-formed packet
         assert merger.add(packet) is False
     assert dict(merger.dropped) == {
-        "unknown region": 1,
         "before the snapshot": 1,
         "bad image": 2,
         "unknown reference": 1,
@@ -563,8 +561,9 @@ def test_the_mouths_inside_goes_out_when_the_mouth_opens(
 
 def test_the_receive_loop_counts_and_drops_bad_patches(tmp_path) -> None:
     """A real call of the bundled clip's first 140 frames with its REM patches, and in the
-    middle hostile ones: a region that does not exist, a corrupt image, one far larger than
-    its region, a reference to an image never sent, one older than the snapshot. The call
+    middle hostile ones: a corrupt image, one far larger than its region, a reference to an
+    image never sent, one older than the snapshot (a region that does not exist is a
+    malformed packet: test_packets). The call
     goes on to the end, each is counted and dropped, and the good ones are applied."""
     frames_sent = 140
     keys = Keys(tmp_path)
@@ -580,7 +579,6 @@ def test_the_receive_loop_counts_and_drops_bad_patches(tmp_path) -> None:
                 huge = RemPatch(40, "eye_left", "webp", image, 10.0, 0.5, 0.5)
                 data = huge.data[:30] + bytes(x ^ 0xFF for x in huge.data[30:])
                 for bad in (
-                    dataclasses.replace(huge, region="nose"),
                     dataclasses.replace(huge, data=data),
                     huge,
                     RemPatch.referring(40, "eye_left", 40, 10.0, 0.5, 0.5),
@@ -598,10 +596,10 @@ def test_the_receive_loop_counts_and_drops_bad_patches(tmp_path) -> None:
     assert sender.frames_in == frames_sent and report["ended_by"] == "bye"
     assert report["frames_out"] == frames_sent
     rem = report["rem"]
-    assert rem["dropped"] == {"unknown region": 1, "bad image": 2, "unknown reference": 1}
+    assert rem["dropped"] == {"bad image": 2, "unknown reference": 1}
     # Every good patch arrived and was applied, or waited for a frame when the call ended
     # (the hostile ones took the patches' budget, so the last good ones came with the Bye).
-    assert rem["received"] == sender.patches + 1 + 4
+    assert rem["received"] == sender.patches + 1 + 3
     assert sum(rem["applied"].values()) + rem["replaced"] + rem["waiting"] == sender.patches + 1 > 1
     assert sum(rem["applied"].values()) > rem["waiting"]
     assert report["malformed"] == 0

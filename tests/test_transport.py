@@ -79,8 +79,8 @@ def test_late_joiner_gets_snapshot_and_only_newer_updates(
         assert join(sender, receiver).seq == 50
         updates: list[Update] = [frame(seq) for seq in range(40, 100)]  # 40..49: in flight
         updates += [
-            RemPatch(45, "eyes", "jpeg", JPEG, 10.0, 0.5, 0.5),
-            RemPatch(60, "eyes", "jpeg", JPEG, 10.0, 0.5, 0.5),
+            RemPatch(45, "eye_left", "jpeg", JPEG, 10.0, 0.5, 0.5),
+            RemPatch(60, "eye_left", "jpeg", JPEG, 10.0, 0.5, 0.5),
             DeltaFrame(1, b"\x01"),  # no seq: always passed on to the decoder
             Bye(99),
         ]
