@@ -908,10 +908,11 @@ class SenderEndpoint(_Endpoint):
         del self._refine[identity]
         if len(self._fast) < MAX_SNAPSHOT_PEERS:
             self._fast.add(identity)
-        self._send_full(identity)
+        self._send_full(identity, f"its draft came in {snapshot_ms:.0f} ms")
 
-    def _send_full(self, identity: bytes) -> None:
+    def _send_full(self, identity: bytes, why: str) -> None:
         """The full snapshot to ``identity`` on the ROUTER connection (never blocks)."""
+        logger.info("the full snapshot on the ROUTER connection: %s", why)
         try:
             self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK)
         except zmq.ZMQError:
@@ -951,7 +952,7 @@ class SenderEndpoint(_Endpoint):
                 continue  # the path opens once the receiver has built its decoder
             else:
                 del self._refine[identity]
-                self._send_full(identity)
+                self._send_full(identity, "no datagram path to the receiver")
 
 
 class ReceiverEndpoint(_Endpoint):
@@ -1039,6 +1040,11 @@ class ReceiverEndpoint(_Endpoint):
         self._snapshot_where = f"{where} {self._snapshot_address}"
         self.snapshot: Snapshot | None = None
         self.snapshot_ms = 0.0
+        #: When this join first asked for the snapshot (None: not yet): a caller that tries
+        #: in short attempts (receiver/session.py) calls fetch_snapshot() again while a draft
+        #: still crosses a thin link, and timed from its last attempt the draft seemed to come
+        #: at 120-200 kbit/s, and the full snapshot went after it at once, 1 s of queue.
+        self._asked: float | None = None
         #: The last failed CURVE/ZMTP handshake with the sender, in words (None if none).
         self.handshake_error: str | None = None
         self._sub_dropped = False  # SUB lost its connection since the join began
@@ -1140,6 +1146,7 @@ class ReceiverEndpoint(_Endpoint):
             remaining = _ms(deadline - time.monotonic())
             if remaining <= 0:
                 self._read_events()
+                self._asked = None  # the sender is not there: the next join starts afresh
                 raise TransportError(
                     f"no published packet {self._pub_where} within {timeout_ms} ms "
                     f"(is the sender running?){self._handshake_hint()}"
@@ -1149,7 +1156,8 @@ class ReceiverEndpoint(_Endpoint):
         # 2. Ask for the snapshot (again every SNAPSHOT_RETRY_MS, in case a request was lost
         # or refused by the rate limit); updates keep queueing on SUB meanwhile.
         next_request = 0.0
-        asked = time.monotonic()
+        if self._asked is None:
+            self._asked = time.monotonic()
         while True:
             now = time.monotonic()
             remaining = _ms(deadline - now)
@@ -1193,7 +1201,8 @@ class ReceiverEndpoint(_Endpoint):
             self._newest = (packet.seq, self._clock())
             #: How long the snapshot took to come, ms (from the first request): the sender
             #: learns from it whether the link is fast (docs/protocol.md 8.7).
-            self.snapshot_ms = (time.monotonic() - asked) * 1000
+            self.snapshot_ms = (time.monotonic() - self._asked) * 1000
+            self._asked = None
             logger.info("snapshot: session %d from seq %d", packet.session_id, packet.seq)
             return packet
 
