@@ -78,6 +78,11 @@ logger = logging.getLogger(__name__)
 #: Shorter than PEER_TIMEOUT_S, so the media are back on PUB before a receiver would give its
 #: peer up (the sender heartbeats at least every second, the receiver reports every 0.5 s).
 PATH_TIMEOUT_S = 1.5
+#: A path that never opened is timed from when its receiver has the snapshot (it says so:
+#: "ready"), not from its key: the key goes just before the snapshot, whose draft takes 1.2 s
+#: to cross a 16 kbit/s link, and the sender's first datagrams wait behind it. Without a word
+#: from the receiver, from this long after its key.
+READY_WAIT_S = 8.0
 #: The connecting end's empty datagrams while the path is not open yet, then while it is down.
 HELLO_INTERVAL_S = 0.1
 REPROBE_INTERVAL_S = 2.0
@@ -266,13 +271,23 @@ class _Receiver:
     live_told: bool = False
     fallback_told: bool = False
     last_hello: float = -math.inf
+    ready_at: float | None = None  # when it said it has the snapshot
 
     def live(self, now: float) -> bool:
         return self.address is not None and now - self.last_heard < PATH_TIMEOUT_S
 
     def down(self, now: float) -> bool:
-        """No live path, and none for PATH_TIMEOUT_S since its key or its last datagram."""
-        return not self.live(now) and now - max(self.offered_at, self.last_heard) >= PATH_TIMEOUT_S
+        """No live path, and none for PATH_TIMEOUT_S since its last datagram, or since it said
+        it has the snapshot if none came yet (READY_WAIT_S after its key if it never said)."""
+        if self.live(now):
+            return False
+        if self.last_heard > -math.inf:
+            since = self.last_heard
+        elif self.ready_at is not None:
+            since = self.ready_at
+        else:
+            since = self.offered_at + READY_WAIT_S
+        return now - since >= PATH_TIMEOUT_S
 
 
 class SenderMediaPath(_Path):
@@ -304,6 +319,12 @@ class SenderMediaPath(_Path):
         )
         self._by_identity[identity] = self._by_key[key_id] = peer
         return MediaKey(key_id, secret, 1)
+
+    def ready(self, identity: bytes, now: float) -> None:
+        """The receiver ``identity`` has the snapshot: its path can open from now on."""
+        peer = self._by_identity.get(identity)
+        if peer is not None and peer.ready_at is None:
+            peer.ready_at = now
 
     def forget(self, identity: bytes) -> None:
         peer = self._by_identity.pop(identity, None)
@@ -580,6 +601,12 @@ class ReceiverMediaPath(_Path):
 
     def live(self, now: float) -> bool:
         return now - self.last_heard < PATH_TIMEOUT_S
+
+    def joined(self, now: float) -> None:
+        """The snapshot has come: a path that never opened is timed from now (the sender's
+        first datagrams crossed a thin link behind it)."""
+        if self.last_heard == -math.inf:
+            self._keyed_at = now
 
     def read(self, now: float, now_ms: int) -> list[bytes]:
         """The version-2 packets in the datagrams that came (fragments put together)."""

@@ -812,6 +812,12 @@ class SenderEndpoint(_Endpoint):
                 self._refine.pop(identity, None)
             if isinstance(packet, ReceiverStats) and identity in self._refine:
                 self._refine_if_fast(identity, packet.values.get(SNAPSHOT_MS))
+            if (
+                isinstance(packet, ReceiverStats)
+                and SNAPSHOT_MS in packet.values
+                and self._media is not None
+            ):
+                self._media.ready(identity, self._clock())
             if isinstance(packet, ReceiverStats) and packet.values.get(LATE_FRAMES, 0) > 0:
                 self._open_spare(identity)
         else:
@@ -1203,6 +1209,8 @@ class ReceiverEndpoint(_Endpoint):
             #: learns from it whether the link is fast (docs/protocol.md 8.7).
             self.snapshot_ms = (time.monotonic() - self._asked) * 1000
             self._asked = None
+            if self._media is not None:
+                self._media.joined(self._clock())
             logger.info("snapshot: session %d from seq %d", packet.session_id, packet.seq)
             return packet
 

@@ -75,3 +75,38 @@ def test_udp_closed_mid_call_goes_on_over_tcp(tmp_path: Path) -> None:
     assert report["frames_out"] == FRAMES and report["ended_by"] == "bye", report
     longest = max((length for _first, length in report["freezes"]), default=0)
     assert longest <= MAX_FREEZE_FRAMES, report["freezes"]
+
+
+def test_udp_closed_from_the_start_the_call_goes_over_tcp(tmp_path: Path) -> None:
+    """No datagram ever passes: the media go on PUB from the first frame, and each end says
+    so once, the sender 1.5 s after the receiver said it had the snapshot (its path could not
+    open before: on a thin link the snapshot takes seconds). The call is 5 s: a sender that
+    waited READY_WAIT_S (8 s) for the receiver's word would never say it."""
+    keys = _keys(tmp_path)
+    stats = tmp_path / "receiver.json"
+    frames = 150
+    sender = receiver = None
+    with TwoHosts(Netem(delay_ms=5, jitter_ms=0, loss=0), block_udp_after=0) as hosts:
+        try:
+            receiver = Facewire(
+                "receive", "--bind", f"tcp://{ADDRESS_B}:{PORT}", "--once",
+                "--stats", str(stats), "--key", str(keys / "bob.key_secret"),
+                "--peer", str(keys / "alice.key"), prefix=hosts.command(hosts.b),
+                name="receiver in b",
+            )  # fmt: skip
+            sender = Facewire(
+                "send", "--connect", f"tcp://{ADDRESS_B}:{PORT}", "--loop", "--frames", str(frames),
+                "--no-sound", "--key", str(keys / "alice.key_secret"),
+                "--peer", str(keys / "bob.key"), prefix=hosts.command(hosts.a),
+                name="sender in a",
+            )  # fmt: skip
+            assert sender.wait() == 0, sender.output()
+            assert receiver.wait() == 0, receiver.output()
+        finally:
+            kill_all(sender, receiver)
+    assert sender is not None and receiver is not None
+    report = json.loads(stats.read_text())
+    assert report["media"]["datagrams_received"] == 0, report["media"]
+    assert len(_said(sender, "its media go by ZeroMQ over TCP")) == 1, sender.output()
+    assert len(_said(receiver, "media over ZeroMQ/TCP")) == 1, receiver.output()
+    assert report["frames_out"] == frames and report["ended_by"] == "bye", report

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import random
 import socket
@@ -33,6 +34,8 @@ from facewire.protocol.media_path import (
     DATAGRAM_COST,
     DEFAULT_BUDGET_BPS,
     MAX_FRAMES_PER_DATAGRAM,
+    PATH_TIMEOUT_S,
+    READY_WAIT_S,
     Bundler,
     ReceiverMediaPath,
     SenderMediaPath,
@@ -411,6 +414,44 @@ UPDATES = [
     bytes(AudioFrame(70, 1_400_000, b"\xfc" * 40)),
     bytes(Heartbeat(3050556106, 42, 1_500_000)),
 ]
+
+
+@pytest.mark.timeout(20)
+def test_a_path_that_never_opened_is_timed_from_the_snapshots_arrival(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A receiver that binds (`receive --bind`, a sender that connects) on a 16 kbit/s link:
+    the snapshot's draft takes 1.2 s to cross, and the sender's hellos wait behind it. Timed
+    from the key, the sender fell back to ZeroMQ just before the path opened (2 runs in 12).
+    Timed from the receiver's "ready", and the receiver's own clock from the snapshot's
+    arrival, neither says UDP is blocked until it is."""
+    caplog.set_level(logging.WARNING, "facewire.protocol.media_path")
+    call = Call(sender_binds=False)
+    try:
+        call.hold_to_receiver(True)
+        call.receiver.take_key(call.key, call.t)
+        call.step(1.2)  # the draft crossing
+        call.receiver.joined(call.t)
+        call.step(0.4)  # the receiver building its decoder
+        call.sender.ready(b"receiver-1", call.t)
+        assert not call.sender.fallback(call.t)
+        call.step(1.0)
+        assert not call.sender.fallback(call.t) and "UDP blocked" not in caplog.text
+        call.step(0.2)
+        assert "UDP blocked" in caplog.text and not call.sender.fallback(call.t)
+        call.step(0.4)
+        assert call.sender.fallback(call.t)
+        assert caplog.text.count("UDP blocked") == 2, caplog.text  # each end says it once
+    finally:
+        call.close()
+
+
+@pytest.mark.timeout(20)
+def test_a_receiver_that_never_says_it_is_ready_is_given_up_on_later(call: Call) -> None:
+    call.step(READY_WAIT_S + PATH_TIMEOUT_S - 0.1)
+    assert not call.sender.fallback(call.t)
+    call.step(0.2)
+    assert call.sender.fallback(call.t)
 
 
 @pytest.mark.timeout(20)
