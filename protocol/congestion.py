@@ -64,10 +64,8 @@ BASE_WINDOW_S = 30.0
 #: The rate never falls below this: the face's own geometry and the headers of a datagram every
 #: 100 ms fit in it.
 MIN_RATE_BPS = 6_000.0
-#: Where the estimate starts before any report: a little more than the face alone costs. At
-#: 16 kbit/s the first second's patches and the full snapshot's first slices filled a 16 kbit/s
-#: link's queue to 0.6 s in one run of three; at 12, none in three.
-START_RATE_BPS = 12_000.0
+#: Where the estimate starts before any report: a little more than the face alone costs.
+START_RATE_BPS = 16_000.0
 #: Loss (a slow average of the reports') over which the sender repeats each datagram's updates
 #: in the next one, and under which it stops.
 LOSS_REPEAT_ON = 0.01

@@ -106,7 +106,7 @@ SCENARIOS: list[dict[str, Any]] = [{}, {"delay": growing_queue(since=2)}, {"lost
 
 
 def test_starts_low_a_little_above_the_face() -> None:
-    assert RateController().rate_bps == START_RATE_BPS == 12_000
+    assert RateController().rate_bps == START_RATE_BPS == 16_000
 
 
 def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
