@@ -39,30 +39,38 @@ def _said(process: Facewire, text: str) -> list[str]:
     return [line for line in process.lines + process.stderr if text in line]
 
 
+def _call(
+    hosts: TwoHosts, keys: Path, frames: int, stats: Path, *send_extra: str
+) -> tuple[Facewire, Facewire]:
+    """``receive --bind`` in host b (its stats to ``stats``) and ``send --connect --loop`` of
+    ``frames`` frames in host a, both ended well; (sender, receiver)."""
+    sender = receiver = None
+    try:
+        receiver = Facewire(
+            "receive", "--bind", f"tcp://{ADDRESS_B}:{PORT}", "--once",
+            "--stats", str(stats), "--key", str(keys / "bob.key_secret"),
+            "--peer", str(keys / "alice.key"), prefix=hosts.command(hosts.b),
+            name="receiver in b",
+        )  # fmt: skip
+        sender = Facewire(
+            "send", "--connect", f"tcp://{ADDRESS_B}:{PORT}", "--loop", "--frames", str(frames),
+            "--no-sound", *send_extra, "--key", str(keys / "alice.key_secret"),
+            "--peer", str(keys / "bob.key"), prefix=hosts.command(hosts.a),
+            name="sender in a",
+        )  # fmt: skip
+        assert sender.wait() == 0, sender.output()
+        assert receiver.wait() == 0, receiver.output()
+    finally:
+        kill_all(sender, receiver)
+    return sender, receiver
+
+
 def test_udp_closed_mid_call_goes_on_over_tcp(tmp_path: Path) -> None:
     keys = _keys(tmp_path)
     stats, sent = tmp_path / "receiver.json", tmp_path / "sender.json"
-    sender = receiver = None
     with TwoHosts(Netem(delay_ms=5, jitter_ms=0, loss=0), block_udp_after=BLOCK_AFTER) as hosts:
-        try:
-            receiver = Facewire(
-                "receive", "--bind", f"tcp://{ADDRESS_B}:{PORT}", "--once",
-                "--stats", str(stats), "--key", str(keys / "bob.key_secret"),
-                "--peer", str(keys / "alice.key"), prefix=hosts.command(hosts.b),
-                name="receiver in b",
-            )  # fmt: skip
-            sender = Facewire(
-                "send", "--connect", f"tcp://{ADDRESS_B}:{PORT}", "--loop", "--frames", str(FRAMES),
-                "--no-sound", "--stats", str(sent), "--key", str(keys / "alice.key_secret"),
-                "--peer", str(keys / "bob.key"), prefix=hosts.command(hosts.a),
-                name="sender in a",
-            )  # fmt: skip
-            assert sender.wait() == 0, sender.output()
-            assert receiver.wait() == 0, receiver.output()
-        finally:
-            kill_all(sender, receiver)
+        sender, receiver = _call(hosts, keys, FRAMES, stats, "--stats", str(sent))
     print(hosts.relayed)
-    assert sender is not None and receiver is not None
     report = json.loads(stats.read_text())
     media = report["media"]
     print("receiver:", media, "freezes:", report["freezes"])
@@ -85,26 +93,8 @@ def test_udp_closed_from_the_start_the_call_goes_over_tcp(tmp_path: Path) -> Non
     keys = _keys(tmp_path)
     stats = tmp_path / "receiver.json"
     frames = 150
-    sender = receiver = None
     with TwoHosts(Netem(delay_ms=5, jitter_ms=0, loss=0), block_udp_after=0) as hosts:
-        try:
-            receiver = Facewire(
-                "receive", "--bind", f"tcp://{ADDRESS_B}:{PORT}", "--once",
-                "--stats", str(stats), "--key", str(keys / "bob.key_secret"),
-                "--peer", str(keys / "alice.key"), prefix=hosts.command(hosts.b),
-                name="receiver in b",
-            )  # fmt: skip
-            sender = Facewire(
-                "send", "--connect", f"tcp://{ADDRESS_B}:{PORT}", "--loop", "--frames", str(frames),
-                "--no-sound", "--key", str(keys / "alice.key_secret"),
-                "--peer", str(keys / "bob.key"), prefix=hosts.command(hosts.a),
-                name="sender in a",
-            )  # fmt: skip
-            assert sender.wait() == 0, sender.output()
-            assert receiver.wait() == 0, receiver.output()
-        finally:
-            kill_all(sender, receiver)
-    assert sender is not None and receiver is not None
+        sender, receiver = _call(hosts, keys, frames, stats)
     report = json.loads(stats.read_text())
     assert report["media"]["datagrams_received"] == 0, report["media"]
     assert len(_said(sender, "its media go by ZeroMQ over TCP")) == 1, sender.output()
