@@ -802,26 +802,26 @@ class SenderEndpoint(_Endpoint):
         elif isinstance(packet, (KeyframeRequest, ReceiverStats)):
             self._accept(packet, data)
             self._inbox.append(packet)
-            if isinstance(packet, ReceiverStats) and packet.values.get("left"):
-                self._fast.discard(identity)
-                if self._media is not None:
-                    self._media.forget(identity)
-            if isinstance(packet, ReceiverStats) and (
-                packet.values.get(REFINED) or packet.values.get("left")
-            ):
-                self._refine.pop(identity, None)
-            if isinstance(packet, ReceiverStats) and identity in self._refine:
-                self._refine_if_fast(identity, packet.values.get(SNAPSHOT_MS))
-            if (
-                isinstance(packet, ReceiverStats)
-                and SNAPSHOT_MS in packet.values
-                and self._media is not None
-            ):
-                self._media.ready(identity, self._clock())
-            if isinstance(packet, ReceiverStats) and packet.values.get(LATE_FRAMES, 0) > 0:
-                self._open_spare(identity)
+            if isinstance(packet, ReceiverStats):
+                self._take_stats(identity, packet.values)
         else:
             self._drop(data, f"unexpected {type(packet).__name__} on the back channel")
+
+    def _take_stats(self, identity: bytes, values: Mapping[str, float]) -> None:
+        """What a receiver's ReceiverStats say to this end: it left, took the full snapshot,
+        has the snapshot (and how fast it came), or had frames come late."""
+        if values.get("left"):
+            self._fast.discard(identity)
+            if self._media is not None:
+                self._media.forget(identity)
+        if values.get(REFINED) or values.get("left"):
+            self._refine.pop(identity, None)
+        if identity in self._refine:
+            self._refine_if_fast(identity, values.get(SNAPSHOT_MS))
+        if SNAPSHOT_MS in values and self._media is not None:
+            self._media.ready(identity, self._clock())
+        if values.get(LATE_FRAMES, 0) > 0:
+            self._open_spare(identity)
 
     def _answer_probe(self) -> None:
         # One published Heartbeat answers every receiver probing within PROBE_INTERVAL_MS, so
