@@ -18,10 +18,12 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
   accelerated ramp-up), but never past CEILING_FACTOR times what the receiver got plus a
-  little (CEILING_HEADROOM_BPS), so a
-  sender that has little to send does not claim a link it never tried. It starts low
-  (START_RATE_BPS: the face and a little more), so the first burst of patches or of the full
-  snapshot cannot flood a thin link before the first reports come back.
+  little (CEILING_HEADROOM_BPS), so a sender that has little to send does not claim a link
+  it never tried.
+- It starts low (START_RATE_BPS: the face and a little more), and lower still where the
+  join's snapshot crossed the link slower than that (:meth:`RateController.on_join`), so the
+  first burst of patches or of the full snapshot cannot flood a thin link before the first
+  reports come back.
 - In between: held.
 
 :class:`RateController` is pure: the transport feeds it reports and sends, and reads ``rate_bps``.
@@ -124,6 +126,20 @@ class RateController:
         if got <= 0:
             return self.rate_bps
         return min(self.rate_bps, PACE_FACTOR * got + PACE_HEADROOM_BPS)
+
+    def on_join(self, bits: float, seconds: float) -> None:
+        """The join's snapshot (or its draft) of ``bits`` came ``seconds`` after the
+        receiver first asked: the link's rate, measured before any report. The estimate
+        starts at no more than DECREASE times it. On a link no faster than the start, the
+        first datagrams (the full snapshot's slices among them) would otherwise fill it and
+        build a queue of a third of a second before the first report could cut the rate."""
+        if self._prev is not None or bits <= 0 or seconds <= 0:
+            return  # the reports know better
+        self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * bits / seconds))
+        logger.debug(
+            "rate starts at %.1f kbit/s: the snapshot's %d bytes came in %.0f ms",
+            self.rate_bps / 1000, bits // 8, seconds * 1000,
+        )  # fmt: skip
 
     def wants_reports(self, now: float) -> bool:
         """Whether the reports should come at the faster beat now: at the call's start and

@@ -320,11 +320,14 @@ class SenderMediaPath(_Path):
         self._by_identity[identity] = self._by_key[key_id] = peer
         return MediaKey(key_id, secret, 1)
 
-    def ready(self, identity: bytes, now: float) -> None:
-        """The receiver ``identity`` has the snapshot: its path can open from now on."""
+    def ready(self, identity: bytes, now: float, served: int = 0, snapshot_ms: float = 0) -> None:
+        """The receiver ``identity`` has the snapshot, whose ``served`` bytes took
+        ``snapshot_ms`` to come: its path can open from now on, and its rate control starts
+        from that transfer's rate."""
         peer = self._by_identity.get(identity)
         if peer is not None and peer.ready_at is None:
             peer.ready_at = now
+            peer.controller.on_join(served * 8, snapshot_ms / 1000)
 
     def forget(self, identity: bytes) -> None:
         peer = self._by_identity.pop(identity, None)

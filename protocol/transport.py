@@ -487,7 +487,9 @@ class SenderEndpoint(_Endpoint):
         self._snapshot_bytes = b""
         self._waiting: dict[bytes, None] = {}  # identities that asked before a snapshot was set
         self._served_at: dict[bytes, float] = {}  # identity -> time.monotonic() of the last reply
-        self._served_what: dict[bytes, int] = {}  # identity -> the snapshot version it was sent
+        # identity -> the snapshot version it was sent, and that reply's size (the draft's or
+        # the full one's: its transfer time measures the link, docs/protocol.md 8.6)
+        self._served_what: dict[bytes, tuple[int, int]] = {}
         self._snapshot_version = 0
         self._draft_bytes = b""
         # identity -> (when the full snapshot may go (again), attempts left) after a draft
@@ -554,6 +556,8 @@ class SenderEndpoint(_Endpoint):
             "receivers_on_udp": len(peers),
             "frames_per_datagram": self._bundler.k,
             "budget_kbps": self.budget_bps() / 1000,
+            # the rate control's estimate of the thinnest receiver's link
+            "rate_kbps": min((p.controller.rate_bps / 1000 for p in peers), default=None),
             "rate_decreases": sum(p.controller.decreases for p in peers),
             "redundant": self._bundler.redundant,
             "queue_ms": None if last is None else last.queue_ms,
@@ -819,7 +823,8 @@ class SenderEndpoint(_Endpoint):
         if identity in self._refine:
             self._refine_if_fast(identity, values.get(SNAPSHOT_MS))
         if SNAPSHOT_MS in values and self._media is not None:
-            self._media.ready(identity, self._clock())
+            served = self._served_what.get(identity, (None, 0))[1]
+            self._media.ready(identity, self._clock(), served, values[SNAPSHOT_MS])
         if values.get(LATE_FRAMES, 0) > 0:
             self._open_spare(identity)
 
@@ -850,7 +855,7 @@ class SenderEndpoint(_Endpoint):
             return
         if (
             last is not None
-            and self._served_what.get(identity) == self._snapshot_version
+            and self._served_what.get(identity, (None, 0))[0] == self._snapshot_version
             and now - last < self._transfer_s()
         ):
             # On a thin link the reply is still on its way: a second copy would only queue
@@ -899,7 +904,7 @@ class SenderEndpoint(_Endpoint):
             self._refuse(identity, "peer gone")
             return
         self._served_at[identity] = now
-        self._served_what[identity] = self._snapshot_version
+        self._served_what[identity] = (self._snapshot_version, len(reply))
         self.bytes_sent[CHANNEL_SNAPSHOT] += len(reply)
         self.sizes_sent[CHANNEL_SNAPSHOT][len(reply)] += 1
         self.snapshots_served += 1

@@ -109,6 +109,31 @@ def test_starts_low_a_little_above_the_face() -> None:
     assert RateController().rate_bps == START_RATE_BPS == 16_000
 
 
+@pytest.mark.parametrize(
+    ("nbytes", "seconds", "start_kbit"),
+    [
+        (2208, 1.37, 0.85 * 2208 * 8 / 1.37 / 1000),  # Claire's draft over a 16 kbit/s link
+        (2208, 0.05, 16.0),  # a fast link: the start stands
+        (2208, 30.0, 6.0),  # never under the floor
+    ],
+)
+def test_the_joins_snapshot_sets_where_the_rate_starts(
+    nbytes: int, seconds: float, start_kbit: float
+) -> None:
+    controller = RateController()
+    controller.on_join(nbytes * 8, seconds)
+    assert controller.rate_bps / 1000 == pytest.approx(start_kbit)
+    assert controller.sending_bps == controller.rate_bps  # before any report, all of it
+
+
+def test_the_joins_snapshot_counts_for_nothing_once_reports_came() -> None:
+    controller = RateController()
+    simulate(controller, 3)
+    before = controller.rate_bps
+    controller.on_join(2208 * 8, 1.37)
+    assert controller.rate_bps == before
+
+
 def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
     controller = RateController(start_bps=20_000)
     steps = simulate(controller, 40)

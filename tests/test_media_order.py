@@ -9,7 +9,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from transport_helpers import TIMEOUT_MS, frame, join, snapshot
+from transport_helpers import TIMEOUT_MS, frame, join, open_media_path, snapshot
 
 from facewire.protocol.media_path import BUCKET_S, DATAGRAM_COST
 from facewire.protocol.packets import KeyframeRequest, RemPatch
@@ -64,15 +64,6 @@ def test_a_keyframe_request_comes_by_both_paths(
         assert time.monotonic() < deadline, f"requests: {requests}"
         requests += [p for p in sender.poll(timeout_ms=10) if isinstance(p, KeyframeRequest)]
     assert requests == [KeyframeRequest(12)] * 2
-
-
-def open_media_path(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> None:
-    """Until the path is open: the receiver's first hello and the sender's answer."""
-    deadline = time.monotonic() + TIMEOUT_MS / 1000
-    while not (receiver.on_udp and sender.media_figures()["receivers_on_udp"]):
-        assert time.monotonic() < deadline, "the media path did not open"
-        receiver.recv(10)
-        sender.end_frame()
 
 
 def _webp(seed: int = 1) -> bytes:

@@ -113,3 +113,12 @@ def rss_bytes() -> int:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) * 1024
     raise OSError("no VmRSS in /proc/self/status")
+
+
+def open_media_path(sender: SenderEndpoint, receiver: ReceiverEndpoint) -> None:
+    """Until the path is open: the receiver's first hello and the sender's answer."""
+    deadline = time.monotonic() + TIMEOUT_MS / 1000
+    while not (receiver.on_udp and sender.media_figures()["receivers_on_udp"]):
+        assert time.monotonic() < deadline, "the media path did not open"
+        receiver.recv(10)
+        sender.end_frame()
