@@ -1,8 +1,8 @@
 """A first, small version of the snapshot, for a thin link: the picture starts sooner.
 
-The draft is the snapshot itself with its two images made smaller: half their sides (a quarter
-for a large frame) and a low WebP quality, lowered until each fits in half of ``image_bytes``
-(or the smallest setting is reached). Everything the receiver
+The draft is the snapshot itself with its two images made smaller: their sides divided by 2 to
+16 and a low WebP quality, lowered until the texture fits in half of ``image_bytes`` and the
+background in what the texture left (or the smallest setting is reached). Everything the receiver
 decodes frames with (mesh, channel table, reference values, rig) is the same, so the full
 snapshot that follows only brings sharper images (docs/protocol.md, 8.7: the receiver swaps
 them in). ``meta["texture_size"]`` keeps the full texture's side: the receiver scales the
@@ -23,11 +23,14 @@ from facewire.protocol.packets import Snapshot
 
 logger = logging.getLogger(__name__)
 
-#: Divisors of the sides and WebP qualities tried for the draft's images, best first.
-SCALES = (2, 4)
+#: Divisors of the sides and WebP qualities tried for the draft's images, best first. A 1280x720
+#: background takes 1.7 KB at a quarter of its sides (the smallest, once), 0.4 s more of a
+#: 24 kbit/s link before the first picture; at a sixteenth it fits.
+SCALES = (2, 4, 8, 16)
 QUALITIES = (30, 15, 5)
-#: The draft's images together take at most this many bytes (each image gets half). At
-#: 176x144 this keeps the draft near 4 KB: two seconds of a 24 kbit/s link with the join.
+#: The draft's images together take at most this many bytes (the texture, the face, at most
+#: half). With the mesh and the rest the draft is then about 2.3 KB at any frame size: 0.8 s of
+#: a 24 kbit/s link.
 IMAGE_BYTES = 900
 DRAFT_META = "draft"
 
@@ -44,16 +47,17 @@ def _smaller(image: np.ndarray, scale: int, quality: int) -> bytes:
 
 def draft(snapshot: Snapshot, image_bytes: int = IMAGE_BYTES) -> Snapshot | None:
     """The draft of ``snapshot``, or None when the draft would not be smaller."""
-    images = []
-    for name in ("texture", "background"):
+    images: list[bytes] = []
+    for name, budget in (("texture", image_bytes // 2), ("background", image_bytes)):
         data = getattr(snapshot, name)
         if not data:
             images.append(data)
             continue
         image = decode_image(data, f"snapshot {name}")
+        left = budget - sum(map(len, images))
         for scale, quality in itertools.product(SCALES, QUALITIES):
             small = _smaller(image, scale, quality)
-            if len(small) <= image_bytes // 2:
+            if len(small) <= left:
                 break
         images.append(small)
     meta = {**snapshot.meta, DRAFT_META: 1}

@@ -12,6 +12,7 @@ through the commands on loopback shows the draft's blur first, then the full pic
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 import threading
@@ -34,7 +35,7 @@ from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint, Transp
 from facewire.sender.capture import VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.session import start_session
-from facewire.sender.snapshot_draft import draft, is_draft
+from facewire.sender.snapshot_draft import IMAGE_BYTES, draft, is_draft
 
 NO_LINK = unavailable(shaping=True)
 
@@ -52,15 +53,43 @@ def test_the_draft_is_the_snapshot_with_smaller_images(snapshot: Snapshot) -> No
     small = draft(snapshot)
     assert small is not None and is_draft(small) and not is_draft(snapshot)
     assert len(bytes(small)) < len(bytes(snapshot)) / 3
-    # At 640x480 even a quarter of the sides at the lowest quality takes more than 900 bytes.
-    assert len(small.texture) + len(small.background) < 2_000
+    assert len(small.texture) + len(small.background) <= IMAGE_BYTES
     for name in ("session_id", "seq", "width", "height", "channels", "reference", "rig_hash"):
         assert getattr(small, name) == getattr(snapshot, name), name
     assert np.array_equal(small.vertices, snapshot.vertices)
-    # Half or a quarter of the sides (640x480 needs a quarter): the receiver scales them up.
+    # 640x480's background fits at an eighth of its sides: the receiver scales it up.
     full = decode_image(snapshot.background, "full")
     shrunk = decode_image(small.background, "draft")
-    assert shrunk.shape[:2] == (full.shape[0] // 4, full.shape[1] // 4)
+    assert shrunk.shape[:2] == (full.shape[0] // 8, full.shape[1] // 8)
+
+
+def _camera_frame(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` cropped about its middle to the aspect of ``size``, then scaled to it."""
+    height, width = image.shape[:2]
+    crop_w = min(width, round(height * size[0] / size[1]))
+    crop_h = min(height, round(width * size[1] / size[0]))
+    x0, y0 = (width - crop_w) // 2, (height - crop_h) // 2
+    part = image[y0 : y0 + crop_h, x0 : x0 + crop_w]
+    return cv2.resize(part, size, interpolation=cv2.INTER_CUBIC)
+
+
+@pytest.mark.parametrize("size", [(1280, 720), (720, 1280)])
+def test_a_cameras_frame_makes_a_draft_no_bigger(size: tuple[int, int]) -> None:
+    """A webcam's 1280x720 or a phone's 720x1280 (the bundled clip scaled): the draft stays
+    about as small as at 640x480, so it crosses a 24 kbit/s link in under a second. With the
+    sides only ever quartered, 1280x720's was 3.9 KB: the first picture 0.4 s later."""
+    video = VideoSource(demo_clip_path(), realtime=False)
+    frames = [
+        dataclasses.replace(f, image=_camera_frame(f.image, size))
+        for f in itertools.islice(video.frames(), 30)
+    ]
+    video.close()
+    encoder = FaceEncoder(*size, video.fps)
+    snapshot, _ = start_session(encoder, iter(frames), 30, "the bundled clip, scaled")
+    small = draft(snapshot)
+    assert small is not None
+    assert len(small.texture) + len(small.background) <= IMAGE_BYTES
+    assert len(bytes(small)) <= 2_600
 
 
 def test_the_decoder_takes_the_full_images_and_refuses_others(snapshot: Snapshot) -> None:
