@@ -76,9 +76,12 @@ class RoomSender:
         self.bytes_by_kind: Counter[str] = Counter()
         self.started = clock()
 
-    def set_snapshot(self, snapshot: Snapshot, draft: Snapshot | None = None) -> None:
-        """Put ``snapshot`` in the room's bucket, sealed (``draft`` is not needed: the relay
-        keeps the whole snapshot and a joiner reads it at the relay's speed)."""
+    def set_snapshot(
+        self, snapshot: Snapshot, draft: Snapshot | None = None, paced: Snapshot | None = None
+    ) -> None:
+        """Put ``snapshot`` in the room's bucket, sealed (``draft`` and ``paced`` are not
+        needed: the relay keeps the whole snapshot and a joiner reads it at the relay's
+        speed)."""
         self._session_id = snapshot.session_id
         sealed = self.sealer.seal(bytes(snapshot), self.key.metadata(self.name, SNAPSHOT))
         self.link.put_snapshot(sealed)

@@ -485,6 +485,7 @@ class SenderEndpoint(_Endpoint):
         self.max_bps = DEFAULT_BUDGET_BPS if max_bps is None else max_bps
         self._snapshot: Snapshot | None = None
         self._snapshot_bytes = b""
+        self._paced_bytes = b""  # the full snapshot as the datagrams carry it
         self._waiting: dict[bytes, None] = {}  # identities that asked before a snapshot was set
         self._served_at: dict[bytes, float] = {}  # identity -> time.monotonic() of the last reply
         # identity -> the snapshot version it was sent, and that reply's size (the draft's or
@@ -589,18 +590,22 @@ class SenderEndpoint(_Endpoint):
         for bundle in self._bundler.end_frame(now, self.budget_bps(), packing):
             self._media.send(bundle, now)
 
-    def set_snapshot(self, snapshot: Snapshot, draft: Snapshot | None = None) -> None:
+    def set_snapshot(
+        self, snapshot: Snapshot, draft: Snapshot | None = None, paced: Snapshot | None = None
+    ) -> None:
         """Make ``snapshot`` the one served to (re)joining receivers; answers waiting requests.
 
         ``draft``: its first, small version (sender/snapshot_draft.py), served instead where the
         full one would take more than DRAFT_ABOVE_S at the budget; the full one then follows
-        paced behind the media (docs/protocol.md 8.7).
+        paced behind the media (docs/protocol.md 8.7), as ``paced`` where given: a version
+        of it small enough for the datagrams (MAX_REASSEMBLED bytes).
         """
         self._check_open()
         if not isinstance(snapshot, Snapshot):
             raise TypeError(f"expected Snapshot, got {type(snapshot).__name__}")
         self._snapshot = snapshot
         self._snapshot_bytes = bytes(snapshot)
+        self._paced_bytes = self._snapshot_bytes if paced is None else bytes(paced)
         self._draft_bytes = b"" if draft is None else bytes(draft)
         self._refine.clear()
         self._snapshot_version += 1
@@ -928,18 +933,18 @@ class SenderEndpoint(_Endpoint):
             self._router.send_multipart([identity, self._snapshot_bytes], zmq.NOBLOCK)
         except zmq.ZMQError:
             return
-        self._count_refinement()
+        self._count_refinement(self._snapshot_bytes)
 
-    def _count_refinement(self) -> None:
+    def _count_refinement(self, data: bytes) -> None:
         self.refinements_sent += 1
-        self.bytes_sent[CHANNEL_SNAPSHOT] += len(self._snapshot_bytes)
+        self.bytes_sent[CHANNEL_SNAPSHOT] += len(data)
 
     def _send_refinements(self, now: float) -> None:
         """The full snapshot to the receivers served its draft: paced in the datagrams where
         their path is live (again every REFINE_RETRY_S until they say they took it), else at
         once on the ROUTER connection."""
         assert self._media is not None
-        if self._bundler.holds(self._snapshot_bytes):
+        if self._bundler.holds(self._paced_bytes):
             # A copy is still leaving (it goes to every live receiver): a retry counts from
             # when it has gone.
             retry = now + REFINE_RETRY_S
@@ -953,17 +958,23 @@ class SenderEndpoint(_Endpoint):
                 del self._refine[identity]
                 logger.info("the full snapshot was not confirmed: the receiver keeps its draft")
                 continue
-            if self._media.live_for(identity, now) and len(self._snapshot_bytes) <= MAX_REASSEMBLED:
+            live = self._media.live_for(identity, now)
+            if live and len(self._paced_bytes) <= MAX_REASSEMBLED:
                 if not queued:
-                    self._bundler.add_patch(self._snapshot_bytes)
+                    self._bundler.add_patch(self._paced_bytes)
                     queued = True
                 self._refine[identity] = (now + REFINE_RETRY_S, left - 1)
-                self._count_refinement()
-            elif not self._media.live_for(identity, now) and now - due < REFINE_RETRY_S:
+                self._count_refinement(self._paced_bytes)
+            elif not live and now - due < REFINE_RETRY_S:
                 continue  # the path opens once the receiver has built its decoder
             else:
                 del self._refine[identity]
-                self._send_full(identity, "no datagram path to the receiver")
+                self._send_full(
+                    identity,
+                    f"{len(self._paced_bytes)} bytes are more than a datagram message carries"
+                    if live
+                    else "no datagram path to the receiver",
+                )
 
 
 class ReceiverEndpoint(_Endpoint):

@@ -7,6 +7,10 @@ decodes frames with (mesh, channel table, reference values, rig) is the same, so
 snapshot that follows only brings sharper images (docs/protocol.md, 8.7: the receiver swaps
 them in). ``meta["texture_size"]`` keeps the full texture's side: the receiver scales the
 draft's texture up to it, so REM patches land where they will in the full one.
+
+The full snapshot then comes paced in the datagrams, as one message of at most
+MAX_REASSEMBLED bytes. A camera's frame (1280x720 and up) makes a bigger one: :func:`paced`
+is then the full snapshot with its images re-encoded at a lower quality until it fits.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import logging
 import cv2
 import numpy as np
 
+from facewire.protocol.bundle import MAX_REASSEMBLED
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Snapshot
 
@@ -33,6 +38,10 @@ QUALITIES = (30, 15, 5)
 #: a 24 kbit/s link.
 IMAGE_BYTES = 900
 DRAFT_META = "draft"
+#: Sides' divisors and WebP qualities tried, in turn, for the full snapshot's images when it
+#: is too big for the datagrams (the background first: the texture is the face).
+PACED_SCALES = (1, 2)
+PACED_QUALITIES = (70, 50, 30)
 
 
 def _smaller(image: np.ndarray, scale: int, quality: int) -> bytes:
@@ -68,6 +77,35 @@ def draft(snapshot: Snapshot, image_bytes: int = IMAGE_BYTES) -> Snapshot | None
     logger.info("snapshot draft: images %d bytes instead of %d", sum(map(len, images)),
                 sum(map(len, images)) + saved)  # fmt: skip
     return out
+
+
+def paced(snapshot: Snapshot, limit: int = MAX_REASSEMBLED) -> Snapshot | None:
+    """The full snapshot as the datagrams carry it: None where ``snapshot`` itself fits in
+    ``limit`` bytes, else ``snapshot`` with its background, then its texture, re-encoded
+    smaller until it fits (None if even the smallest setting does not)."""
+    size = len(bytes(snapshot))
+    if size <= limit:
+        return None
+    images = {"background": snapshot.background, "texture": snapshot.texture}
+    # What is not the images (msgpack's bin headers: at most 5 bytes more each).
+    rest = size - sum(map(len, images.values())) + 10
+    for name in images:
+        if not images[name]:
+            continue
+        image = decode_image(images[name], f"snapshot {name}")
+        for scale, quality in itertools.product(PACED_SCALES, PACED_QUALITIES):
+            images[name] = _smaller(image, scale, quality)
+            if rest + sum(map(len, images.values())) <= limit:
+                smaller = dataclasses.replace(
+                    snapshot, background=images["background"], texture=images["texture"]
+                )
+                logger.info(
+                    "the snapshot for the datagrams: %d bytes instead of %d (its %s at 1/%d "
+                    "of its sides, WebP quality %d)",
+                    len(bytes(smaller)), size, name, scale, quality,
+                )  # fmt: skip
+                return smaller
+    return None
 
 
 def is_draft(snapshot: Snapshot) -> bool:

@@ -25,17 +25,20 @@ import pytest
 import zmq
 from cli_call import Facewire, all_end_well, free_ports
 from transport_helpers import join, open_media_path
+from transport_helpers import snapshot as test_snapshot
 
 from facewire.onlink import RECEIVE_ADDRESS, Link, unavailable
+from facewire.protocol import transport
+from facewire.protocol.bundle import MAX_REASSEMBLED
 from facewire.protocol.congestion import DECREASE
-from facewire.protocol.constants import SNAPSHOT_MS
+from facewire.protocol.constants import CHANNEL_SNAPSHOT, SNAPSHOT_MS
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Heartbeat, Snapshot, SnapshotRequest, decode
 from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
 from facewire.sender.capture import VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.session import start_session
-from facewire.sender.snapshot_draft import IMAGE_BYTES, draft, is_draft
+from facewire.sender.snapshot_draft import IMAGE_BYTES, draft, is_draft, paced
 
 NO_LINK = unavailable(shaping=True)
 
@@ -235,3 +238,59 @@ def test_the_rate_control_starts_from_how_fast_the_draft_came(snapshot: Snapshot
     assert expected < 12  # well under the 16 kbit/s start
     # The estimate only grows from there, by a quarter a second, while no queue shows.
     assert expected <= rate <= 1.3 * expected
+
+
+def _noise_webp(width: int, height: int, seed: int = 1) -> bytes:
+    noise = np.random.default_rng(seed).integers(0, 255, (height, width, 3), dtype=np.uint8)
+    ok, data = cv2.imencode(
+        ".webp", cv2.GaussianBlur(noise, (3, 3), 0), [cv2.IMWRITE_WEBP_QUALITY, 95]
+    )
+    assert ok
+    return data.tobytes()
+
+
+def test_a_snapshot_too_big_for_the_datagrams_gets_a_version_that_fits(snapshot: Snapshot) -> None:
+    """A camera's frame (a 1920x1080 background: here noise that WebP cannot squeeze) makes a
+    snapshot over the 65535 bytes a datagram message carries: its paced version fits, at the
+    same sides where a lower quality is enough."""
+    assert paced(snapshot) is None  # 640x480 fits as it is
+    big = dataclasses.replace(snapshot, width=1920, height=1080, background=_noise_webp(480, 270))
+    assert len(bytes(big)) > MAX_REASSEMBLED
+    fitted = paced(big)
+    assert fitted is not None and len(bytes(fitted)) <= MAX_REASSEMBLED
+    assert decode_image(fitted.background, "paced").shape[:2] in {(270, 480), (135, 240)}
+    assert fitted.texture == big.texture  # the face is the last thing it gives up
+    for name in ("session_id", "seq", "width", "height", "channels", "reference", "rig_hash"):
+        assert getattr(fitted, name) == getattr(big, name), name
+
+
+def test_the_full_snapshot_too_big_for_a_datagram_message_comes_paced_in_its_version_that_fits(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Real sockets on loopback, the receiver's draft timed as on a thin link: the full
+    snapshot follows in the datagrams as its paced version. Sent whole on TCP instead (it was,
+    at 1280x720: 66 KB), it filled a 24 kbit/s link for 22 s, the frames 0.4-0.8 s late. The
+    limit of a datagram message is made 6 KB here, so the test's snapshot crosses in seconds."""
+    limit = 6_000
+    monkeypatch.setattr(transport, "MAX_REASSEMBLED", limit)
+    big = test_snapshot(texture=_noise_webp(128, 128))
+    fitted, small = paced(big, limit), draft(big)
+    assert len(bytes(big)) > limit and fitted is not None and small is not None
+    with SenderEndpoint(plain=True) as sender:
+        sender.set_snapshot(big, small, fitted)
+        with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
+            assert is_draft(join(sender, receiver))
+            # 300 ms: not a fast link (the full one would go on TCP at once), not a slow one.
+            receiver.send_stats({"ready": 1.0, SNAPSHOT_MS: 300.0})
+            open_media_path(sender, receiver)
+            deadline = time.monotonic() + 20
+            came: Snapshot | None = None
+            while came is None and time.monotonic() < deadline:
+                sender.end_frame()  # at about 30 frames a second
+                packet = receiver.recv(33)
+                if isinstance(packet, Snapshot):
+                    came = packet
+            sent = sender.bytes_sent[CHANNEL_SNAPSHOT]
+    assert came is not None, "the full snapshot did not come"
+    assert bytes(came) == bytes(fitted)
+    assert sent == len(bytes(small)) + len(bytes(fitted))  # never the whole one
