@@ -25,7 +25,7 @@ import pytest
 import zmq
 from cli_call import Facewire, all_end_well, free_ports
 from transport_helpers import join, open_media_path
-from transport_helpers import snapshot as test_snapshot
+from transport_helpers import snapshot as small_snapshot
 
 from facewire.onlink import RECEIVE_ADDRESS, Link, unavailable
 from facewire.protocol import transport
@@ -273,7 +273,7 @@ def test_the_full_snapshot_too_big_for_a_datagram_message_comes_paced_in_its_ver
     limit of a datagram message is made 6 KB here, so the test's snapshot crosses in seconds."""
     limit = 6_000
     monkeypatch.setattr(transport, "MAX_REASSEMBLED", limit)
-    big = test_snapshot(texture=_noise_webp(128, 128))
+    big = small_snapshot(texture=_noise_webp(128, 128))
     fitted, small = paced(big, limit), draft(big)
     assert len(bytes(big)) > limit and fitted is not None and small is not None
     with SenderEndpoint(plain=True) as sender:
