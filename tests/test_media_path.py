@@ -282,6 +282,37 @@ def test_small_patch_goes_whole() -> None:
     assert bundler.patch_bytes_waiting == 0
 
 
+def _eye(seed: int) -> bytes:
+    """A RemPatch of an eye's size on a clean link (150 bytes or so)."""
+    pixels = np.random.default_rng(seed).integers(0, 256, (12, 12, 3), dtype=np.uint8)
+    ok, webp = cv2.imencode(".webp", pixels, [cv2.IMWRITE_WEBP_QUALITY, 20])
+    assert ok
+    return bytes(RemPatch(seed, "eye_left", "webp", webp.tobytes(), 10.0, 0.5, 0.5))
+
+
+def test_a_patch_the_bucket_lacks_a_little_for_goes_whole_and_is_paid_for_after() -> None:
+    """A clean link's call: 20 kbit/s, two frames of 9 bytes a datagram, an eye patch of 150
+    bytes every 300 ms. The bucket holds 166 bytes, the frames and headers take 60: sliced,
+    each patch paid a Fragment's header twice. Whole, the bucket owes what it lacked, and the
+    patches wait until it is paid: over 10 s the budget still holds."""
+    budget = 20_000
+    bundler = Bundler(FPS)
+    patches = [_eye(n) for n in range(34)]
+    assert all(130 <= len(p) <= 170 for p in patches)
+    sent: list[tuple[float, bytes]] = []
+    for i in range(300):
+        now = 1000.0 + i / FPS
+        if i % 9 == 0:
+            bundler.add_patch(patches[i // 9])
+        bundler.add(delta(i, 9))
+        sent += [(now, b) for b in bundler.end_frame(now, budget)]
+    elements = [e for _, b in sent for e in unpack(b)]
+    assert FRAGMENT not in {e[0] for e in elements}
+    assert [e for e in elements if e in patches] == patches
+    wire = sum(len(b) + DATAGRAM_COST for _, b in sent)
+    assert wire <= budget * (10.0 + BUCKET_S) / 8
+
+
 # --- both ends on real sockets -----------------------------------------------------------------
 
 
