@@ -446,7 +446,9 @@ class Bundler:
     ``frames_per_datagram`` frames (from the budget: :func:`frames_per_datagram`) all that waits
     leaves in one datagram (more only if it does not fit in MAX_DATAGRAM bytes). REM patches
     (:meth:`add_patch`) leave as the budget allows: a token bucket of the budget pays for the
-    rest first, and what is left carries patches, whole or in fragments.
+    rest first, and what is left carries patches, whole or in fragments. A bulk message
+    (:meth:`add_bulk`: the snapshot's full images after its draft) takes only what the
+    patches leave: the eyes keep moving while it crosses a thin link.
 
     ``redundant``: on a lossy link each datagram carries the last one's updates again (not its
     patches), as RFC 2198's redundant audio does, so one lost datagram loses nothing; the
@@ -464,11 +466,13 @@ class Bundler:
         self.hurry = False
         self._hurried = -math.inf
         self._patches: deque[tuple[int, bytes, int]] = deque()  # message, packet, offset sent
+        self._bulk: deque[tuple[int, bytes, int]] = deque()  # the same, after the patches
         self._message = 0
         self._frames = 0
         self._tokens = 0.0
         self._filled: float | None = None
         self.patch_bytes_waiting = 0
+        self.bulk_bytes_waiting = 0
         self.k = 1
         #: What leaves whatever the budget (frames, sound, heartbeats), bits per second: an
         #: average over about a second.
@@ -481,15 +485,28 @@ class Bundler:
         self._due_bytes += len(data)
 
     def add_patch(self, data: bytes) -> None:
+        self._patches.append((self._number(data), data, 0))
+        self.patch_bytes_waiting += len(data)
+
+    def add_bulk(self, data: bytes) -> None:
+        self._bulk.append((self._number(data), data, 0))
+        self.bulk_bytes_waiting += len(data)
+
+    def drop_bulk(self) -> None:
+        """Forget the bulk messages not sent yet (a Bye: nothing after it is taken)."""
+        self._bulk.clear()
+        self.bulk_bytes_waiting = 0
+
+    def _number(self, data: bytes) -> int:
         if len(data) > MAX_REASSEMBLED:
             raise ValueError(f"a {len(data)}-byte patch is too large for a datagram's fragments")
         self._message = (self._message + 1) % 256
-        self._patches.append((self._message, data, 0))
-        self.patch_bytes_waiting += len(data)
+        return self._message
 
     def holds(self, data: bytes) -> bool:
-        """Whether ``data`` (handed to :meth:`add_patch`) has not all left yet."""
-        return any(packet is data for _, packet, _ in self._patches)
+        """Whether ``data`` (handed to :meth:`add_patch` or :meth:`add_bulk`) has not all
+        left yet."""
+        return any(packet is data for _, packet, _ in (*self._patches, *self._bulk))
 
     def end_frame(
         self, now: float, budget_bps: float, packing_bps: float | None = None
@@ -513,7 +530,7 @@ class Bundler:
 
     def flush(self, now: float, budget_bps: float) -> list[bytes]:
         """Everything due, now, and what the budget allows of the patches."""
-        if not self._due and not self._patches:
+        if not self._due and not self._patches and not self._bulk:
             return []
         rate = min(budget_bps, 1e9) / 8.0  # a Bye's flush pays whatever it costs
         depth = rate * min(BUCKET_S, self.k / self.fps)
@@ -545,29 +562,47 @@ class Bundler:
         # bucket then owing it: sliced, an eye's 150 bytes paid a Fragment's header twice
         # (0.4 kbit/s of a clean link's 13). The next datagrams carry no patch until it is paid.
         borrow = int(min(depth, MAX_DATAGRAM - OVERHEAD - size - max(room, 0)))
-        while self._patches:
-            message, packet, offset = self._patches[0]
-            if offset == 0 and element_size(len(packet)) <= room + borrow:
-                chunk, taken = packet, len(packet)
-                room += borrow
-                borrow = 0
-            elif room > FRAGMENT_HEADER + 16:
-                taken = min(len(packet) - offset, room - FRAGMENT_HEADER - 3)
-                part = packet[offset : offset + taken]
-                chunk = bytes(Fragment(message, len(packet), offset, part))
-            else:
-                break
-            if offset + taken >= len(packet):
-                self._patches.popleft()
-            else:
-                self._patches[0] = (message, packet, offset + taken)
-            self.patch_bytes_waiting -= taken
-            elements.append(chunk)
-            room -= element_size(len(chunk))
-            spend += element_size(len(chunk))
+        chunks, room, taken = _serve(self._patches, room, borrow)
+        self.patch_bytes_waiting -= taken
+        if not self._patches:
+            bulk, room, taken = _serve(self._bulk, room, 0)
+            self.bulk_bytes_waiting -= taken
+            chunks += bulk
+        elements += chunks
+        spend += sum(element_size(len(c)) for c in chunks)
         out.append(pack(elements))
         self._tokens -= spend
         return out
+
+
+def _serve(
+    queue: deque[tuple[int, bytes, int]], room: int, borrow: int
+) -> tuple[list[bytes], int, int]:
+    """What of ``queue``'s messages (message number, packet, offset sent) fits in ``room``
+    bytes, in order: whole elements, or Fragments of what does not fit; one message may go
+    whole by ``borrow`` bytes more. (elements, room left, packet bytes taken.)"""
+    chunks: list[bytes] = []
+    total = 0
+    while queue:
+        message, packet, offset = queue[0]
+        if offset == 0 and element_size(len(packet)) <= room + borrow:
+            chunk, taken = packet, len(packet)
+            room += borrow
+            borrow = 0
+        elif room > FRAGMENT_HEADER + 16:
+            taken = min(len(packet) - offset, room - FRAGMENT_HEADER - 3)
+            part = packet[offset : offset + taken]
+            chunk = bytes(Fragment(message, len(packet), offset, part))
+        else:
+            break
+        if offset + taken >= len(packet):
+            queue.popleft()
+        else:
+            queue[0] = (message, packet, offset + taken)
+        total += taken
+        chunks.append(chunk)
+        room -= element_size(len(chunk))
+    return chunks, room, total
 
 
 # --- the receiver's end -------------------------------------------------------------------------

@@ -411,6 +411,12 @@ class _Endpoint:
         self.close()
 
 
+#: The pictures' share of what the budget leaves while the snapshot's full images are on their
+#: way (they go after the pictures): at 24 kbit/s the pictures keep their own budgets, at 16
+#: they give up some of them.
+PATCH_SHARE_REFINING = 0.5
+
+
 class SenderEndpoint(_Endpoint):
     """The sender's side: publishes updates, serves the snapshot, reads the back channel.
 
@@ -540,10 +546,13 @@ class SenderEndpoint(_Endpoint):
         return self._media.budget_bps(self._clock(), self.max_bps)
 
     def patch_budget_bps(self) -> float:
-        """What the budget leaves for REM patches, bits per second (payload)."""
+        """What the budget leaves for REM patches, bits per second (payload): while the
+        snapshot's full images cross (behind the patches), at most PATCH_SHARE_REFINING of
+        it, so that they cross too."""
         budget = self.budget_bps()
         headers = DATAGRAM_COST * 8 * self._bundler.fps / self._bundler.k
-        return max(0.0, budget - headers - self._bundler.due_bps)
+        left = max(0.0, budget - headers - self._bundler.due_bps)
+        return left * PATCH_SHARE_REFINING if self._bundler.bulk_bytes_waiting else left
 
     @property
     def frames_per_datagram(self) -> int:
@@ -669,7 +678,8 @@ class SenderEndpoint(_Endpoint):
         assert self._media is not None
         if isinstance(packet, Bye):
             # What still waits for the budget (patches) goes first: after the Bye the
-            # receiver takes nothing more of this session.
+            # receiver takes nothing more of this session (nor the snapshot's refinement).
+            self._bundler.drop_bulk()
             for _ in range(_MAX_DRAIN_DATAGRAMS):
                 if not self._bundler.patch_bytes_waiting:
                     break
@@ -961,7 +971,7 @@ class SenderEndpoint(_Endpoint):
             live = self._media.live_for(identity, now)
             if live and len(self._paced_bytes) <= MAX_REASSEMBLED:
                 if not queued:
-                    self._bundler.add_patch(self._paced_bytes)
+                    self._bundler.add_bulk(self._paced_bytes)
                     queued = True
                 self._refine[identity] = (now + REFINE_RETRY_S, left - 1)
                 self._count_refinement(self._paced_bytes)

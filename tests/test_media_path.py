@@ -313,6 +313,37 @@ def test_a_patch_the_bucket_lacks_a_little_for_goes_whole_and_is_paid_for_after(
     assert wire <= budget * (10.0 + BUCKET_S) / 8
 
 
+def test_patches_overtake_a_bulk_message_which_still_crosses() -> None:
+    """The snapshot's full images (30 KB, a bulk message) crossing at 20 kbit/s: an eye patch
+    queued after them leaves in the next datagram, not 20 s later as it did when both waited
+    in one queue (the eyes stood still while the picture sharpened). The bulk message takes
+    what the patches leave and comes whole."""
+    bundler = Bundler(FPS)
+    bulk = bytes(RemPatch(99, "eye_left", "png", rem_patch(7, side=100)[13:], 1.0, 0.5, 0.5))
+    assert len(bulk) > 25_000
+    bundler.add_bulk(bulk)
+    eye = _eye(1)
+    sent: list[tuple[float, bytes]] = []
+    for i in range(900):
+        now = 1000.0 + i / FPS
+        if i == 30:
+            bundler.add_patch(eye)
+        bundler.add(delta(i, 9))
+        sent += [(now, b) for b in bundler.end_frame(now, 20_000)]
+    eye_at = next(t for t, b in sent if eye in unpack(b))
+    assert eye_at - (1000.0 + 30 / FPS) < 0.1
+    assert packets_of([b for _, b in sent]).count(bulk) == 1
+    assert not bundler.holds(bulk) and bundler.bulk_bytes_waiting == 0
+
+
+def test_a_bye_drops_the_bulk_messages_waiting() -> None:
+    bundler = Bundler(FPS)
+    bundler.add_bulk(rem_patch(3))
+    bundler.drop_bulk()
+    assert bundler.bulk_bytes_waiting == 0
+    assert bundler.flush(1000.0, math.inf) == []
+
+
 # --- both ends on real sockets -----------------------------------------------------------------
 
 

@@ -34,7 +34,12 @@ from facewire.protocol.congestion import DECREASE
 from facewire.protocol.constants import CHANNEL_SNAPSHOT, SNAPSHOT_MS
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Heartbeat, Snapshot, SnapshotRequest, decode
-from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint, TransportError
+from facewire.protocol.transport import (
+    PATCH_SHARE_REFINING,
+    ReceiverEndpoint,
+    SenderEndpoint,
+    TransportError,
+)
 from facewire.sender.capture import VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.session import start_session
@@ -282,7 +287,9 @@ def test_the_full_snapshot_too_big_for_a_datagram_message_comes_paced_in_its_ver
             assert is_draft(join(sender, receiver))
             # 300 ms: not a fast link (the full one would go on TCP at once), not a slow one.
             receiver.send_stats({"ready": 1.0, SNAPSHOT_MS: 300.0})
-            open_media_path(sender, receiver)
+            monkeypatch.setattr(sender, "budget_bps", lambda: 20_000.0)
+            open_media_path(sender, receiver)  # the refinement is due: queued
+            crossing = sender.patch_budget_bps()
             deadline = time.monotonic() + 20
             came: Snapshot | None = None
             while came is None and time.monotonic() < deadline:
@@ -291,6 +298,8 @@ def test_the_full_snapshot_too_big_for_a_datagram_message_comes_paced_in_its_ver
                 if isinstance(packet, Snapshot):
                     came = packet
             sent = sender.bytes_sent[CHANNEL_SNAPSHOT]
+            # While it crossed, behind the pictures, they had half of what they have after.
+            assert crossing == pytest.approx(sender.patch_budget_bps() * PATCH_SHARE_REFINING)
     assert came is not None, "the full snapshot did not come"
     assert bytes(came) == bytes(fitted)
     assert sent == len(bytes(small)) + len(bytes(fitted))  # never the whole one
