@@ -382,7 +382,7 @@ def send(
     from facewire.sender.audio import with_sound
     from facewire.sender.encoder import FaceEncoder
     from facewire.sender.session import restamped, run_sender, start_session, wait_until_ready
-    from facewire.sender.snapshot_draft import draft, paced
+    from facewire.sender.snapshot_draft import draft, sharper
 
     source = _Source(args)
     try:
@@ -402,7 +402,7 @@ def send(
             **keys,
         )
         try:
-            endpoint.set_snapshot(snapshot, draft(snapshot), paced(snapshot))
+            endpoint.set_snapshot(snapshot, draft(snapshot), sharper(snapshot))
             tell(
                 f"sending {source.name} ({width}x{height} at {source.video.fps:g} fps"
                 f"{source.scaled_from}) as session {snapshot.session_id}; waiting for a "

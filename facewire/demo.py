@@ -35,7 +35,7 @@ from facewire.sender.lift import MarkerFaceTracker
 from facewire.sender.markers import NO_MARKERS
 from facewire.sender.rate_cap import GEOMETRY_KBPS
 from facewire.sender.session import capped_size, run_sender, scaled, wait_until_ready
-from facewire.sender.snapshot_draft import draft, paced
+from facewire.sender.snapshot_draft import draft, sharper
 from facewire.sheet import write_contact_sheet
 
 logger = logging.getLogger(__name__)
@@ -141,7 +141,7 @@ def _call(
         fps=video.fps,
         udp=not args.tcp_only,
     ) as endpoint:
-        endpoint.set_snapshot(snapshot, draft(snapshot), paced(snapshot))
+        endpoint.set_snapshot(snapshot, draft(snapshot), sharper(snapshot))
         proc = ctx.Process(
             target=_receiver_main,
             args=(endpoint.ports, str(args.output), verbosity, results, receiver_keys),

@@ -15,7 +15,7 @@ import math
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from facewire.protocol import subjects
 from facewire.protocol.clock import now_us
@@ -77,9 +77,9 @@ class RoomSender:
         self.started = clock()
 
     def set_snapshot(
-        self, snapshot: Snapshot, draft: Snapshot | None = None, paced: Snapshot | None = None
+        self, snapshot: Snapshot, draft: Snapshot | None = None, sharper: Sequence[Snapshot] = ()
     ) -> None:
-        """Put ``snapshot`` in the room's bucket, sealed (``draft`` and ``paced`` are not
+        """Put ``snapshot`` in the room's bucket, sealed (``draft`` and ``sharper`` are not
         needed: the relay keeps the whole snapshot and a joiner reads it at the relay's
         speed)."""
         self._session_id = snapshot.session_id

@@ -165,6 +165,8 @@ LATE_FRAMES: Final = "late_frames"
 LATE_REPORT_S: Final = 1.0
 #: ReceiverStats name: the full snapshot after its draft was taken (docs/protocol.md 8.7).
 REFINED: Final = "refined"
+#: Snapshot meta key: set on a draft, a smaller version of the session's snapshot (8.7).
+DRAFT: Final = "draft"
 #: The sender serves a draft of its snapshot first when the full one would take longer than
 #: this at its budget, and sends the full one paced behind the media; again every
 #: REFINE_RETRY_S until the receiver says REFINED, at most REFINE_ATTEMPTS times.

@@ -56,7 +56,7 @@ import os
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Self, TypeVar
@@ -491,7 +491,8 @@ class SenderEndpoint(_Endpoint):
         self.max_bps = DEFAULT_BUDGET_BPS if max_bps is None else max_bps
         self._snapshot: Snapshot | None = None
         self._snapshot_bytes = b""
-        self._paced_bytes = b""  # the full snapshot as the datagrams carry it
+        # What the datagrams carry after a draft, in order: the last is the full snapshot.
+        self._sharper: list[bytes] = []
         self._waiting: dict[bytes, None] = {}  # identities that asked before a snapshot was set
         self._served_at: dict[bytes, float] = {}  # identity -> time.monotonic() of the last reply
         # identity -> the snapshot version it was sent, and that reply's size (the draft's or
@@ -600,21 +601,25 @@ class SenderEndpoint(_Endpoint):
             self._media.send(bundle, now)
 
     def set_snapshot(
-        self, snapshot: Snapshot, draft: Snapshot | None = None, paced: Snapshot | None = None
+        self,
+        snapshot: Snapshot,
+        draft: Snapshot | None = None,
+        sharper: Sequence[Snapshot] = (),
     ) -> None:
         """Make ``snapshot`` the one served to (re)joining receivers; answers waiting requests.
 
         ``draft``: its first, small version (sender/snapshot_draft.py), served instead where the
         full one would take more than DRAFT_ABOVE_S at the budget; the full one then follows
-        paced behind the media (docs/protocol.md 8.7), as ``paced`` where given: a version
-        of it small enough for the datagrams (MAX_REASSEMBLED bytes).
+        paced behind the media (docs/protocol.md 8.7), as ``sharper`` where given: versions
+        that the datagrams carry in turn (at most MAX_REASSEMBLED bytes each), the last the
+        full snapshot as they can carry it.
         """
         self._check_open()
         if not isinstance(snapshot, Snapshot):
             raise TypeError(f"expected Snapshot, got {type(snapshot).__name__}")
         self._snapshot = snapshot
         self._snapshot_bytes = bytes(snapshot)
-        self._paced_bytes = self._snapshot_bytes if paced is None else bytes(paced)
+        self._sharper = [bytes(s) for s in sharper] or [self._snapshot_bytes]
         self._draft_bytes = b"" if draft is None else bytes(draft)
         self._refine.clear()
         self._snapshot_version += 1
@@ -954,13 +959,13 @@ class SenderEndpoint(_Endpoint):
         their path is live (again every REFINE_RETRY_S until they say they took it), else at
         once on the ROUTER connection."""
         assert self._media is not None
-        if self._bundler.holds(self._paced_bytes):
+        if any(self._bundler.holds(data) for data in self._sharper):
             # A copy is still leaving (it goes to every live receiver): a retry counts from
             # when it has gone.
             retry = now + REFINE_RETRY_S
             self._refine = {i: (max(due, retry), left) for i, (due, left) in self._refine.items()}
             return
-        queued = False
+        queued: list[bytes] = []  # sent to every live receiver at once
         for identity, (due, left) in list(self._refine.items()):
             if now < due:
                 continue
@@ -969,19 +974,22 @@ class SenderEndpoint(_Endpoint):
                 logger.info("the full snapshot was not confirmed: the receiver keeps its draft")
                 continue
             live = self._media.live_for(identity, now)
-            if live and len(self._paced_bytes) <= MAX_REASSEMBLED:
-                if not queued:
-                    self._bundler.add_bulk(self._paced_bytes)
-                    queued = True
+            if live and max(map(len, self._sharper)) <= MAX_REASSEMBLED:
+                # All in turn the first time, the full one alone again.
+                again = self._sharper if left == REFINE_ATTEMPTS else self._sharper[-1:]
+                for data in again:
+                    if not any(data is q for q in queued):
+                        self._bundler.add_bulk(data)
+                        queued.append(data)
+                    self._count_refinement(data)
                 self._refine[identity] = (now + REFINE_RETRY_S, left - 1)
-                self._count_refinement(self._paced_bytes)
             elif not live and now - due < REFINE_RETRY_S:
                 continue  # the path opens once the receiver has built its decoder
             else:
                 del self._refine[identity]
                 self._send_full(
                     identity,
-                    f"{len(self._paced_bytes)} bytes are more than a datagram message carries"
+                    f"{len(self._sharper[-1])} bytes are more than a datagram message carries"
                     if live
                     else "no datagram path to the receiver",
                 )

@@ -22,7 +22,7 @@ import numpy as np
 
 from facewire.protocol.channels import ChainBroken, FrameValues
 from facewire.protocol.clock import now_us
-from facewire.protocol.constants import CALL, REFINED, SCENE, SNAPSHOT_MS
+from facewire.protocol.constants import CALL, DRAFT, REFINED, SCENE, SNAPSHOT_MS
 from facewire.protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
 from facewire.protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from facewire.receiver.audio import CallSound
@@ -515,8 +515,12 @@ def _receive_session(
                         audio.push(packet, now_us())
                     if decoder.offer(packet):  # a REM patch, drawn with its frame
                         pass
-                    elif isinstance(packet, Snapshot):  # the full one after its draft
-                        if decoder.refine(packet):
+                    elif isinstance(packet, Snapshot):  # a sharper one after its draft
+                        if not decoder.refine(packet):
+                            pass
+                        elif packet.meta.get(DRAFT):  # the full one is still to come
+                            logger.info("a sharper draft of the snapshot came")
+                        else:
                             report.refined += 1
                             endpoint.send_stats({REFINED: 1.0})
                             logger.info("the snapshot's full images came: drawn from now on")

@@ -30,7 +30,7 @@ from facewire.sender.encoder import FaceEncoder
 from facewire.sender.refresh import REFRESH_KBPS
 from facewire.sender.rem import BUDGET_KBPS as EYES_KBPS
 from facewire.sender.rem import MOUTH_BUDGET_KBPS
-from facewire.sender.snapshot_draft import draft, paced
+from facewire.sender.snapshot_draft import draft, sharper
 
 logger = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ def run_sender(
         if scene is not None and scene.snapshot is not None and not scene.served:
             # Served at once, and said at once: the receiver shows the new scene's first
             # frame while the encoder readies its fit.
-            endpoint.set_snapshot(scene.snapshot, draft(scene.snapshot), paced(scene.snapshot))
+            endpoint.set_snapshot(scene.snapshot, draft(scene.snapshot), sharper(scene.snapshot))
             endpoint.heartbeat()
             scene.served = True
             report.scenes += 1

@@ -43,7 +43,14 @@ from facewire.protocol.transport import (
 from facewire.sender.capture import VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.session import start_session
-from facewire.sender.snapshot_draft import IMAGE_BYTES, draft, is_draft, paced
+from facewire.sender.snapshot_draft import (
+    IMAGE_BYTES,
+    MIDDLE_BYTES,
+    draft,
+    is_draft,
+    paced,
+    sharper,
+)
 
 NO_LINK = unavailable(shaping=True)
 
@@ -269,20 +276,23 @@ def test_a_snapshot_too_big_for_the_datagrams_gets_a_version_that_fits(snapshot:
         assert getattr(fitted, name) == getattr(big, name), name
 
 
-def test_the_full_snapshot_too_big_for_a_datagram_message_comes_paced_in_its_version_that_fits(
+def test_a_sharper_draft_then_the_full_snapshot_in_a_version_a_datagram_message_carries(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Real sockets on loopback, the receiver's draft timed as on a thin link: the full
-    snapshot follows in the datagrams as its paced version. Sent whole on TCP instead (it was,
-    at 1280x720: 66 KB), it filled a 24 kbit/s link for 22 s, the frames 0.4-0.8 s late. The
-    limit of a datagram message is made 6 KB here, so the test's snapshot crosses in seconds."""
+    """Real sockets on loopback, the receiver's draft timed as on a thin link: a sharper
+    draft, then the full snapshot as the datagrams carry it, in turn. Sent whole on TCP
+    instead (it was, at 1280x720: 66 KB), the full one filled a 24 kbit/s link for 22 s, the
+    frames 0.4-0.8 s late. A datagram message's limit is made 6 KB here, so the test's
+    snapshot crosses in seconds."""
     limit = 6_000
     monkeypatch.setattr(transport, "MAX_REASSEMBLED", limit)
     big = small_snapshot(texture=_noise_webp(128, 128))
-    fitted, small = paced(big, limit), draft(big)
+    fitted, middle, small = paced(big, limit), paced(big, 2_500), draft(big)
     assert len(bytes(big)) > limit and fitted is not None and small is not None
+    assert middle is not None
+    middle = dataclasses.replace(middle, meta={**middle.meta, "draft": 1})
     with SenderEndpoint(plain=True) as sender:
-        sender.set_snapshot(big, small, fitted)
+        sender.set_snapshot(big, small, [middle, fitted])
         with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
             assert is_draft(join(sender, receiver))
             # 300 ms: not a fast link (the full one would go on TCP at once), not a slow one.
@@ -291,15 +301,23 @@ def test_the_full_snapshot_too_big_for_a_datagram_message_comes_paced_in_its_ver
             open_media_path(sender, receiver)  # the refinement is due: queued
             crossing = sender.patch_budget_bps()
             deadline = time.monotonic() + 20
-            came: Snapshot | None = None
-            while came is None and time.monotonic() < deadline:
+            came: list[Snapshot] = []
+            while len(came) < 2 and time.monotonic() < deadline:
                 sender.end_frame()  # at about 30 frames a second
                 packet = receiver.recv(33)
                 if isinstance(packet, Snapshot):
-                    came = packet
+                    came.append(packet)
             sent = sender.bytes_sent[CHANNEL_SNAPSHOT]
             # While it crossed, behind the pictures, they had half of what they have after.
             assert crossing == pytest.approx(sender.patch_budget_bps() * PATCH_SHARE_REFINING)
-    assert came is not None, "the full snapshot did not come"
-    assert bytes(came) == bytes(fitted)
-    assert sent == len(bytes(small)) + len(bytes(fitted))  # never the whole one
+    assert [bytes(c) for c in came] == [bytes(middle), bytes(fitted)]
+    assert sent == sum(len(bytes(s)) for s in (small, middle, fitted))  # never the whole one
+
+
+def test_a_large_snapshot_gets_a_sharper_draft_first(snapshot: Snapshot) -> None:
+    """640x480's 33 KB take half a minute of a 24 kbit/s link: a 10 KB draft goes first."""
+    middle, full = sharper(snapshot)
+    assert is_draft(middle) and len(bytes(middle)) <= MIDDLE_BYTES
+    assert full is snapshot
+    small = dataclasses.replace(snapshot, background=draft(snapshot).background)  # type: ignore[union-attr]
+    assert sharper(small) == [small]  # under twice MIDDLE_BYTES: the full one alone
