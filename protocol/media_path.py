@@ -561,7 +561,9 @@ class Bundler:
         # A patch that the bucket lacks at most its depth for goes whole, once a datagram, the
         # bucket then owing it: sliced, an eye's 150 bytes paid a Fragment's header twice
         # (0.4 kbit/s of a clean link's 13). The next datagrams carry no patch until it is paid.
-        borrow = int(min(depth, MAX_DATAGRAM - OVERHEAD - size - max(room, 0)))
+        # Not while the rate control has something to follow (``hurry``: the call's first
+        # seconds, a queue, a cut): there the bigger datagrams queued on a 24 kbit/s link.
+        borrow = 0 if self.hurry else int(min(depth, MAX_DATAGRAM - OVERHEAD - size - max(room, 0)))
         chunks, room, taken = _serve(self._patches, room, borrow)
         self.patch_bytes_waiting -= taken
         if not self._patches:

@@ -311,6 +311,14 @@ def test_a_patch_the_bucket_lacks_a_little_for_goes_whole_and_is_paid_for_after(
     assert [e for e in elements if e in patches] == patches
     wire = sum(len(b) + DATAGRAM_COST for _, b in sent)
     assert wire <= budget * (10.0 + BUCKET_S) / 8
+    # While the rate control follows something (a queue, the call's start) nothing is owed.
+    hurried = Bundler(FPS)
+    hurried.hurry = True
+    hurried.add_patch(patches[0])
+    for i in range(30):
+        hurried.add(delta(i, 9))
+        for bundle in hurried.end_frame(1000.0 + i / FPS, budget):
+            assert patches[0] not in unpack(bundle)
 
 
 def test_patches_overtake_a_bulk_message_which_still_crosses() -> None:
