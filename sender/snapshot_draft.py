@@ -58,21 +58,33 @@ def _smaller(image: np.ndarray, scale: int, quality: int) -> bytes:
     return data.tobytes()
 
 
+def _within(
+    image: np.ndarray, scales: tuple[int, ...], qualities: tuple[int, ...], budget: int
+) -> bytes:
+    """``image`` as WebP at the first of ``scales`` x ``qualities`` (sides' divisor, quality;
+    best first) that takes at most ``budget`` bytes, else at the last. The last is tried first:
+    where even it does not fit, no other is encoded (at 640x480, five full-size encodings
+    saved for each image that cannot fit)."""
+    settings = list(itertools.product(scales, qualities))
+    smallest = _smaller(image, *settings[-1])
+    if len(smallest) > budget:
+        return smallest
+    for scale, quality in settings[:-1]:
+        data = _smaller(image, scale, quality)
+        if len(data) <= budget:
+            return data
+    return smallest
+
+
 def draft(snapshot: Snapshot, image_bytes: int = IMAGE_BYTES) -> Snapshot | None:
     """The draft of ``snapshot``, or None when the draft would not be smaller."""
     images: list[bytes] = []
     for name, budget in (("texture", image_bytes // 2), ("background", image_bytes)):
         data = getattr(snapshot, name)
-        if not data:
-            images.append(data)
-            continue
-        image = decode_image(data, f"snapshot {name}")
-        left = budget - sum(map(len, images))
-        for scale, quality in itertools.product(SCALES, QUALITIES):
-            small = _smaller(image, scale, quality)
-            if len(small) <= left:
-                break
-        images.append(small)
+        if data:
+            image = decode_image(data, f"snapshot {name}")
+            data = _within(image, SCALES, QUALITIES, budget - sum(map(len, images)))
+        images.append(data)
     meta = {**snapshot.meta, DRAFT: 1}
     out = dataclasses.replace(snapshot, texture=images[0], background=images[1], meta=meta)
     saved = len(snapshot.texture) + len(snapshot.background) - len(images[0]) - len(images[1])
@@ -93,22 +105,20 @@ def paced(snapshot: Snapshot, limit: int = MAX_REASSEMBLED) -> Snapshot | None:
     images = {"background": snapshot.background, "texture": snapshot.texture}
     # What is not the images (msgpack's bin headers: at most 5 bytes more each).
     rest = size - sum(map(len, images.values())) + 10
-    for name in images:
-        if not images[name]:
+    for name, data in images.items():
+        if not data:
             continue
-        image = decode_image(images[name], f"snapshot {name}")
-        for scale, quality in itertools.product(PACED_SCALES, PACED_QUALITIES):
-            images[name] = _smaller(image, scale, quality)
-            if rest + sum(map(len, images.values())) <= limit:
-                smaller = dataclasses.replace(
-                    snapshot, background=images["background"], texture=images["texture"]
-                )
-                logger.info(
-                    "the snapshot for the datagrams: %d bytes instead of %d (its %s at 1/%d "
-                    "of its sides, WebP quality %d)",
-                    len(bytes(smaller)), size, name, scale, quality,
-                )  # fmt: skip
-                return smaller
+        others = sum(len(d) for n, d in images.items() if n != name)
+        image = decode_image(data, f"snapshot {name}")
+        images[name] = _within(image, PACED_SCALES, PACED_QUALITIES, limit - rest - others)
+        if rest + sum(map(len, images.values())) <= limit:
+            smaller = dataclasses.replace(
+                snapshot, background=images["background"], texture=images["texture"]
+            )
+            logger.info(
+                "the snapshot for the datagrams: %d bytes instead of %d", len(bytes(smaller)), size
+            )
+            return smaller
     return None
 
 
