@@ -15,6 +15,8 @@ from facewire.loopback import Loopback
 from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.scene_cut import SceneCut, another_face
+from facewire.sender.session import _SceneStart
+from facewire.sender.snapshot_draft import is_draft
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 BEFORE, AFTER = 30, 150  # frames of the bundled clip, then of the other scene (5 s: its session
@@ -136,3 +138,18 @@ def test_a_black_frame_is_no_new_scene() -> None:
     pictures, scenes = _call(frames, scenes=True)
     assert scenes == 0
     assert _off(pictures[-1], frames[-1]) < 12.0
+
+
+def test_a_new_scenes_versions_for_a_thin_link_are_made_with_it_off_the_calls_loop() -> None:
+    """The draft and the sharper versions of a new scene's snapshot (0.1-0.25 s of WebP
+    encoding at 640x480 and 1280x720) are made on the scene's own thread, with the snapshot,
+    so the call's loop serves all three at once and never waits for them."""
+    encoder = FaceEncoder(640, 480, 30.0)
+    first = bundled(1)[0]
+    encoder.start(CapturedFrame(0, first, 0))
+    scene = _SceneStart(encoder, CapturedFrame(1, other_scene(1)[0], 33_333))
+    assert scene.done(wait=True)
+    assert scene.snapshot is not None
+    assert scene.draft is not None and is_draft(scene.draft)
+    assert scene.draft.session_id == scene.snapshot.session_id
+    assert scene.sharper[-1] is scene.snapshot  # 640x480's fits in a datagram message
