@@ -12,7 +12,7 @@ dev: $(VENV)/.dev
 $(VENV)/.installed: pyproject.toml scripts/install-system-deps.sh
 	sh scripts/install-system-deps.sh
 	python3 -m venv $(VENV)
-	@echo "installing facewire and what it runs on into $(VENV) (about 700 MB; a few minutes)"
+	@echo "installing facewire and what it runs on into $(VENV) (about 800 MB; a few minutes)"
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --progress-bar on -e .
 	touch $@

@@ -26,7 +26,7 @@ import numpy as np
 from facewire.models.mesh import load_canonical
 from facewire.models.pose import estimate_pose
 from facewire.sender.detector import FaceDetector, tile_grid
-from facewire.sender.landmarks import OUTPUT_LAYERS, LandmarkTracker
+from facewire.sender.landmarks import LandmarkTracker
 
 FIXTURE = Path(__file__).resolve().parent.parent / "tests" / "fixtures" / "astronaut_face.jpg"
 
@@ -88,7 +88,8 @@ def main() -> None:
     report("landmarks (steady state)", per_frame_ms(track, seq))
     print(f"frames lost: {lost}")
 
-    net_only = per_frame_ms(lambda _: tracker.net.forward(OUTPUT_LAYERS), seq[:100])
+    still = np.zeros(tracker.net.input_shape[1:], np.float32)
+    net_only = per_frame_ms(lambda _: tracker.net.run(still), seq[:100])
     report("  landmark net forward only", net_only)
 
     canonical = load_canonical().vertices

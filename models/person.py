@@ -1,4 +1,4 @@
-"""Where a frame shows a person: MediaPipe's selfie segmentation through cv2.dnn.
+"""Where a frame shows a person: MediaPipe's selfie segmentation (models/network.py).
 
 Both ends use it on the snapshot frame. The receiver cuts that frame into the person (hair,
 neck, shoulders: carried by the head's motion) and the scene behind (still, or moved by the
@@ -16,6 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.models.network import Network, rgb_input
+
 MODEL = "selfie_segmentation_landscape.tflite"
 INPUT_SIZE = (256, 144)  # width, height
 
@@ -25,24 +27,17 @@ def model_path(name: str = MODEL) -> Path:
 
 
 @functools.cache
-def _net() -> cv2.dnn.Net:
-    # The classic engine, as for the sender's models (see sender.detector.read_tflite).
-    engine = getattr(cv2.dnn, "ENGINE_CLASSIC", None)
-    path = str(model_path())
-    return (
-        cv2.dnn.readNetFromTFLite(path)
-        if engine is None
-        else cv2.dnn.readNetFromTFLite(path, engine)
-    )
+def _net() -> Network:
+    return Network(model_path())
 
 
 def person_mask(frame_bgr: np.ndarray) -> np.ndarray:
     """(h, w) float32 in [0, 1]: how likely each pixel of ``frame_bgr`` shows a person."""
     if frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3 or frame_bgr.dtype != np.uint8:
         raise ValueError(f"expected (h, w, 3) uint8 BGR frame, got {frame_bgr.shape}")
-    blob = cv2.dnn.blobFromImage(frame_bgr, 1 / 255.0, INPUT_SIZE, swapRB=True)
     net = _net()
-    net.setInput(blob)
-    small = net.forward()[0, 0].astype(np.float32)
+    scaled = cv2.resize(frame_bgr, INPUT_SIZE, interpolation=cv2.INTER_LINEAR)
+    (out,) = net.run(rgb_input(scaled, 1 / 255.0)).values()
+    small = out[0, :, :, 0].astype(np.float32)
     h, w = frame_bgr.shape[:2]
     return np.clip(cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)

@@ -1,4 +1,4 @@
-"""Face detection with MediaPipe's BlazeFace short-range model through ``cv2.dnn``.
+"""Face detection with MediaPipe's BlazeFace short-range model (run by models/network.py).
 
 The detector only chooses where the landmark model looks: it runs on the first frame and
 after the tracker loses the face. Coordinates are OpenCV pixel coordinates of the input
@@ -14,6 +14,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from facewire.models.network import Network, rgb_input
 
 logger = logging.getLogger(__name__)
 
@@ -31,18 +33,6 @@ KEYPOINT_NAMES = ("right_eye", "left_eye", "nose_tip", "mouth", "right_ear", "le
 def model_path(name: str) -> Path:
     """Path of a file shipped in sender/data."""
     return Path(str(resources.files("facewire.sender") / "data" / name))
-
-
-def read_tflite(path: str | Path) -> cv2.dnn.Net:
-    """Load a TFLite model with OpenCV's classic DNN engine when it exists.
-
-    OpenCV 5's new engine reports (and forwards) only the first graph output, while the
-    classic one exposes all of them (e.g. the detector's scores, the landmark presence).
-    """
-    engine = getattr(cv2.dnn, "ENGINE_CLASSIC", None)
-    if engine is None:
-        return cv2.dnn.readNetFromTFLite(str(path))
-    return cv2.dnn.readNetFromTFLite(str(path), engine)
 
 
 def ssd_anchors() -> np.ndarray:
@@ -150,7 +140,7 @@ class FaceDetector:
         self.path = (
             Path(path) if path is not None else model_path("face_detection_short_range.tflite")
         )
-        self.net = read_tflite(self.path)
+        self.net = Network(self.path)
         self.min_score = min_score
         self.iou_threshold = iou_threshold
         self.anchors = ssd_anchors()
@@ -169,11 +159,8 @@ class FaceDetector:
             frame_bgr, top, side - h - top, left, side - w - left, cv2.BORDER_CONSTANT, value=0
         )
         small = cv2.resize(square, (INPUT_SIZE, INPUT_SIZE), interpolation=cv2.INTER_AREA)
-        blob = cv2.dnn.blobFromImage(
-            small, scalefactor=1 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True
-        )
-        self.net.setInput(blob)
-        regressors, logits = self.net.forward(OUTPUT_LAYERS)
+        out = self.net.run(rgb_input(small, 1 / 127.5, -1.0))
+        regressors, logits = (out[name] for name in OUTPUT_LAYERS)
         boxes, kps, scores = decode(regressors[0], logits.reshape(-1), self.anchors)
         keep = scores >= self.min_score
         if not keep.any():

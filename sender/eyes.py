@@ -16,7 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facewire.sender.detector import model_path, read_tflite
+from facewire.models.network import Network, rgb_input
+from facewire.sender.detector import model_path
 
 INPUT_SIZE = 64
 OUTPUT_LAYER = "output_eyes_contours_and_brows"
@@ -68,13 +69,13 @@ def eye_crop(points: np.ndarray, corners: tuple[int, int], mirrored: bool) -> np
 class EyeRefiner:
     """Replaces the 71 eye-region landmarks of each eye with the eye model's (x, y).
 
-    Depth (z) stays the face model's: the eye model's z is relative to its own crop. Both
-    eyes go through the network as one batch (about 4 ms on one core).
+    Depth (z) stays the face model's: the eye model's z is relative to its own crop. Each eye
+    takes about 1.5 ms on one core.
     """
 
     def __init__(self, path: str | Path | None = None) -> None:
         self.path = Path(path) if path is not None else model_path("iris_landmark.tflite")
-        self.net = read_tflite(self.path)
+        self.net = Network(self.path)
 
     def refine(self, frame_bgr: np.ndarray, points: np.ndarray) -> np.ndarray:
         """``points`` ((468, 3) image pixels) with both eye regions refined: a new array."""
@@ -82,19 +83,16 @@ class EyeRefiner:
             (EYE_REGION, eye_crop(points, RIGHT_CORNERS, mirrored=False)),
             (EYE_REGION_LEFT, eye_crop(points, LEFT_CORNERS, mirrored=True)),
         ]
-        patches = [
-            cv2.warpAffine(
+        raw = []
+        for _, m in eyes:
+            patch = cv2.warpAffine(
                 frame_bgr,
                 m,
                 (INPUT_SIZE, INPUT_SIZE),
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                 borderMode=cv2.BORDER_REPLICATE,
             )
-            for _, m in eyes
-        ]
-        blob = cv2.dnn.blobFromImages(patches, scalefactor=1 / 255.0, swapRB=True)
-        self.net.setInput(blob)
-        raw = self.net.forward(OUTPUT_LAYER).reshape(2, len(EYE_REGION), 3)
+            raw.append(self.net.run(rgb_input(patch, 1 / 255.0))[OUTPUT_LAYER].reshape(-1, 3))
         out = np.array(points, dtype=np.float64, copy=True)
         for (ids, m), pts in zip(eyes, raw, strict=True):
             # Continuous model coordinates (pixel i spans [i, i+1)) to OpenCV pixel centres.

@@ -1,4 +1,4 @@
-"""Markerless face tracking: MediaPipe's 468-point face landmark model through ``cv2.dnn``.
+"""Markerless face tracking: MediaPipe's 468-point face landmark model (models/network.py).
 
 Each frame the model sees a square, upright (roll-corrected) crop of the face. The crop comes
 from the BlazeFace detector on the first frame and after a loss, and from the previous
@@ -20,13 +20,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facewire.models.network import Network, rgb_input
 from facewire.sender.detector import (
     Detection,
     FaceDetector,
     TileSearch,
     largest_first,
     model_path,
-    read_tflite,
 )
 from facewire.sender.eyes import EyeRefiner
 from facewire.sender.smoothing import LandmarkSmoother
@@ -34,7 +34,7 @@ from facewire.sender.smoothing import LandmarkSmoother
 logger = logging.getLogger(__name__)
 
 INPUT_SIZE = 192
-# Graph outputs: 468 x (x, y, z) in crop pixels (1, 1404, 1, 1), face-presence logit (1, 1, 1, 1).
+# Graph outputs: 468 x (x, y, z) in crop pixels (1, 1, 1, 1404), face-presence logit (1, 1, 1, 1).
 OUTPUT_LAYERS = ["conv2d_21", "conv2d_31"]
 N_LANDMARKS = 468
 # MediaPipe indices that set the crop's roll: the face's right and left outer eye corners.
@@ -176,7 +176,7 @@ class LandmarkTracker:
         refine_eyes: bool = True,
     ) -> None:
         self.path = Path(path) if path is not None else model_path("face_landmark.tflite")
-        self.net = read_tflite(self.path)
+        self.net = Network(self.path)
         self.detector = detector if detector is not None else FaceDetector()
         self.min_presence = min_presence
         self.search = TileSearch(self.detector, min_face) if min_face is not None else None
@@ -224,9 +224,8 @@ class LandmarkTracker:
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_CONSTANT,
         )
-        blob = cv2.dnn.blobFromImage(patch, scalefactor=1 / 255.0, swapRB=True)
-        self.net.setInput(blob)
-        raw, logit = self.net.forward(OUTPUT_LAYERS)
+        outputs = self.net.run(rgb_input(patch, 1 / 255.0))
+        raw, logit = (outputs[name] for name in OUTPUT_LAYERS)
         pts = raw.reshape(N_LANDMARKS, 3).astype(np.float64)
         # The model's coordinates are continuous (pixel i spans [i, i+1)); OpenCV's pixel
         # centres are at integers.

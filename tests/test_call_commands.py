@@ -262,11 +262,29 @@ def test_two_way_call_with_frames_on_both_ends_sends_them_all(tmp_path: Path, ke
     assert alice["received"]["frames_out"] == 120 and bob["received"]["frames_out"] == 45
 
 
+def _free(port: int) -> bool:
+    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                return False
+    return True
+
+
 def _busy_port() -> tuple[socket.socket, int]:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    s.listen()
-    return s, s.getsockname()[1]
+    """A listening socket on a port whose two ports below are free: a call bound two below
+    must get as far as this one (another test's socket may hold the port just below the
+    kernel's pick)."""
+    for _ in range(100):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        if port > 2 and _free(port - 1) and _free(port - 2):
+            return s, port
+        s.close()
+    raise RuntimeError("no listening port with two free ports below it")
 
 
 @pytest.mark.parametrize(
