@@ -277,17 +277,16 @@ class _Receiver:
         return self.address is not None and now - self.last_heard < PATH_TIMEOUT_S
 
     def down(self, now: float) -> bool:
-        """No live path, and none for PATH_TIMEOUT_S since its last datagram, or since it said
-        it has the snapshot if none came yet (READY_WAIT_S after its key if it never said)."""
+        """No live path for PATH_TIMEOUT_S since its last datagram and since the receiver said
+        it has the snapshot (READY_WAIT_S after its key while it has not said so).
+
+        Until it says so, a receiver's silence means nothing: its first hello comes with its
+        key, and then it builds its decoder without reading its socket (1.7 s on a cold start,
+        the first `facewire demo` after a boot, where the sender said UDP was blocked)."""
         if self.live(now):
             return False
-        if self.last_heard > -math.inf:
-            since = self.last_heard
-        elif self.ready_at is not None:
-            since = self.ready_at
-        else:
-            since = self.offered_at + READY_WAIT_S
-        return now - since >= PATH_TIMEOUT_S
+        ready = self.ready_at if self.ready_at is not None else self.offered_at + READY_WAIT_S
+        return now - max(self.last_heard, ready) >= PATH_TIMEOUT_S
 
 
 class SenderMediaPath(_Path):

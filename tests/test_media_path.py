@@ -517,6 +517,27 @@ def test_a_path_that_never_opened_is_timed_from_the_snapshots_arrival(
 
 
 @pytest.mark.timeout(20)
+def test_a_receiver_silent_while_it_builds_its_decoder_is_not_given_up_on(
+    open_call: Call, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The path opens with the receiver's key; then the receiver builds its decoder, reading
+    nothing, for 1.7 s (a cold start). Only once it said it has the snapshot does its
+    silence count."""
+    caplog.set_level(logging.WARNING, "facewire.protocol.media_path")
+    call = open_call
+    for _ in range(170):  # the receiver busy: only the sender runs
+        call.t += 0.01
+        call.sender.read(call.t)
+        call.sender.service(call.t)
+    assert not call.sender.fallback(call.t) and "UDP blocked" not in caplog.text
+    call.sender.ready(b"receiver-1", call.t)
+    call.t += PATH_TIMEOUT_S - 0.1
+    assert not call.sender.fallback(call.t)
+    call.t += 0.2  # ready, and still silent: now it is down
+    assert call.sender.fallback(call.t)
+
+
+@pytest.mark.timeout(20)
 def test_a_receiver_that_never_says_it_is_ready_is_given_up_on_later(call: Call) -> None:
     call.step(READY_WAIT_S + PATH_TIMEOUT_S - 0.1)
     assert not call.sender.fallback(call.t)
