@@ -24,6 +24,7 @@ from facewire.protocol.channels import ChainBroken, FrameValues
 from facewire.protocol.clock import now_us
 from facewire.protocol.constants import CALL, DRAFT, REFINED, SCENE, SNAPSHOT_MS
 from facewire.protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, PacketError, Snapshot
+from facewire.protocol.pauses import settle
 from facewire.protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from facewire.receiver.audio import CallSound
 from facewire.receiver.decoder import FaceDecoder, SnapshotError
@@ -488,6 +489,7 @@ def _receive_session(
         report.display_fps = settings.display_fps or snapshot.fps
         player = _Player(Painter(decoder), out, report, snapshot, started, scene)
         lateness = LateFrames()
+        settle()  # before the frames: no pause of the garbage collector among them
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
         # ask for the keyframe that starts our chain. A new scene's receiver is no new one.
         joined = SCENE if scene is not None else "ready"
