@@ -64,8 +64,10 @@ def _stats(tmp: Path, name: str) -> dict:
 def test_three_in_a_room_one_joining_late(relay: Relay, key: Path, tmp_path: Path) -> None:
     alice = bob = carol = None
     try:
-        alice = _join(relay, key, "alice", "--loop", "--frames", "240", tmp=tmp_path)
-        bob = _join(relay, key, "bob", "--loop", "--frames", "240", tmp=tmp_path)
+        # 15 s each: under a full suite's load Carol's process took longer to start than the
+        # 8 s Alice once streamed, and Alice had left before Carol came.
+        alice = _join(relay, key, "alice", "--loop", "--frames", "450", tmp=tmp_path)
+        bob = _join(relay, key, "bob", "--loop", "--frames", "450", tmp=tmp_path)
         alice.expect("bob joined")
         bob.expect("alice joined")
         # Carol comes when both are well into their streams: their snapshots come from the
