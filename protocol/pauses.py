@@ -8,6 +8,10 @@ once a session is built and before its frames flow, collects what is garbage the
 the rest aside (``gc.freeze``): later collections look only at what came after, and take a
 millisecond or two. Reference counting still frees what is set aside; only cycles among those
 objects would wait for the next settle, which every new session (a scene cut, a rejoin) makes.
+
+The receiver only: the sender's full collection took 13-27 ms, at start-up, and settled, a
+sender sharing its core with a busy process sent its sound worse (test_audio's sender-behind
+case: voice correlation 0.82-0.94, under the 0.9 asked in 4 runs of 5; 0.96 in 3 of 3 without).
 """
 
 from __future__ import annotations

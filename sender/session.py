@@ -24,7 +24,6 @@ from facewire.protocol.packets import (
     RemPatch,
     Snapshot,
 )
-from facewire.protocol.pauses import settle
 from facewire.protocol.transport import SenderEndpoint, TransportError
 from facewire.sender.capture import CapturedFrame, CaptureError
 from facewire.sender.encoder import FaceEncoder
@@ -249,7 +248,6 @@ def start_session(
         buffered.append(frame)
         snapshot = encoder.start(frame, seq=buffered[0].index)
         if snapshot is not None:
-            settle()  # before the frames: no pause of the garbage collector among them
             return snapshot, buffered
     raise CaptureError(f"no face found in the first {len(buffered)} frames of {name}")
 

@@ -9,9 +9,6 @@ from collections.abc import Iterator
 import pytest
 
 from facewire.protocol.pauses import settle
-from facewire.sender import session as sender_session
-from facewire.sender.capture import VideoSource, demo_clip_path
-from facewire.sender.encoder import FaceEncoder
 
 
 class Node:
@@ -56,12 +53,3 @@ def test_a_second_settle_frees_what_the_first_set_aside() -> None:
     assert gone() is not None
     settle()  # the next session's
     assert gone() is None
-
-
-def test_a_sender_settles_once_its_session_is_built(monkeypatch: pytest.MonkeyPatch) -> None:
-    calls: list[int] = []
-    monkeypatch.setattr(sender_session, "settle", lambda: calls.append(1))
-    video = VideoSource(demo_clip_path(), realtime=False)
-    encoder = FaceEncoder(video.width, video.height, video.fps)
-    snapshot, _ = sender_session.start_session(encoder, video.frames(), 30, "the clip")
-    assert snapshot is not None and calls == [1]
