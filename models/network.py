@@ -83,9 +83,8 @@ class Network:
                 self._input, np.ascontiguousarray(image, dtype=np.float32)[None]
             )
             self._interpreter.invoke()
-            return {
-                name: self._interpreter.get_tensor(i).copy() for name, i in self._outputs.items()
-            }
+            # get_tensor copies: what is returned stays as it is through the next invoke.
+            return {name: self._interpreter.get_tensor(i) for name, i in self._outputs.items()}
 
 
 def rgb_input(image_bgr: np.ndarray, scale: float, offset: float = 0.0) -> np.ndarray:
