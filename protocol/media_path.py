@@ -452,7 +452,10 @@ class Bundler:
     ``redundant``: on a lossy link each datagram carries the last one's updates again (not its
     patches), as RFC 2198's redundant audio does, so one lost datagram loses nothing; the
     receiver drops the second copies. ``losing``: the receiver's reports show loss now (the
-    repeats also run at a call's start, before any report): fewer frames share a datagram.
+    repeats also run at a call's start, before any report): fewer frames share a datagram, and
+    each carries the frame packets of the datagram before the last too, so two lost in a row
+    break no chain (the sound's Opus conceals a gap): at 5% loss one pair in 400 datagrams
+    did, and the keyframe it then asked for froze the picture 200-233 ms.
     ``hurry``: ask for reports at the faster beat (a Hurry element every HURRY_EVERY_S).
     """
 
@@ -460,6 +463,10 @@ class Bundler:
         self.fps = fps
         self._due: list[bytes] = []
         self._last_due: list[bytes] = []
+        # The frame packets among those due, the last datagram's and the one's before it.
+        self._due_frames: list[bytes] = []
+        self._last_frames: list[bytes] = []
+        self._older_frames: list[bytes] = []
         self.redundant = False
         self.losing = False
         self.hurry = False
@@ -479,9 +486,13 @@ class Bundler:
         self._due_bytes = 0
         self._due_since: float | None = None
 
-    def add(self, data: bytes) -> None:
+    def add(self, data: bytes, frame: bool = False) -> None:
+        """An update due with this frame; ``frame``: a KeyFrame or a DeltaFrame (the ones
+        repeated twice while ``losing``)."""
         self._due.append(data)
         self._due_bytes += len(data)
+        if frame:
+            self._due_frames.append(data)
 
     def add_patch(self, data: bytes) -> None:
         self._patches.append((self._number(data), data, 0))
@@ -543,10 +554,15 @@ class Bundler:
             self._hurried = now
             elements.append(_HURRY_ELEMENT)
             size += element_size(len(_HURRY_ELEMENT))
-        again = self._last_due if self.redundant else []
-        room_again = sum(element_size(len(e)) for e in again + self._due)
-        if room_again > MAX_DATAGRAM - OVERHEAD:
-            again = []  # a repeat never takes a datagram of its own
+        again = []
+        if self.redundant:
+            again = self._last_due
+            if self.losing:
+                again = self._older_frames + again
+            if _size(again + self._due) > MAX_DATAGRAM - OVERHEAD:
+                again = self._last_due
+            if _size(again + self._due) > MAX_DATAGRAM - OVERHEAD:
+                again = []  # a repeat never takes a datagram of its own
         for element in again + self._due:
             need = element_size(len(element))
             if elements and size + need > MAX_DATAGRAM - OVERHEAD:
@@ -555,6 +571,8 @@ class Bundler:
             elements.append(element)
             size += need
         self._last_due, self._due = self._due, []
+        self._older_frames, self._last_frames = self._last_frames, self._due_frames
+        self._due_frames = []
         spend = size + DATAGRAM_COST * (len(out) + 1)
         room = int(min(MAX_DATAGRAM - OVERHEAD - size, self._tokens - spend))
         # A patch that the bucket lacks at most its depth for goes whole, once a datagram, the
@@ -574,6 +592,10 @@ class Bundler:
         out.append(pack(elements))
         self._tokens -= spend
         return out
+
+
+def _size(elements: list[bytes]) -> int:
+    return sum(element_size(len(e)) for e in elements)
 
 
 def _serve(

@@ -696,7 +696,7 @@ class SenderEndpoint(_Endpoint):
             # (A small patch behind a paced one waits too: it may refer to that one's image.)
             self._bundler.add_patch(data)
         else:
-            self._bundler.add(data)
+            self._bundler.add(data, frame=isinstance(packet, FRAME_KINDS))
         if isinstance(packet, Bye) or not self._paced:
             # The last datagram leaves at once, whatever it costs; so does every update of a
             # caller that does not mark its frames' ends (end_frame), which bundles nothing.

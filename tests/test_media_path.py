@@ -153,6 +153,28 @@ def test_repeats_carry_the_last_datagrams_updates_again() -> None:
     ]
 
 
+def test_while_losing_two_datagrams_lost_in_a_row_break_no_chain() -> None:
+    """While the reports show loss, a datagram repeats the frame packets of the one before the
+    last too (not its sound): the frames of any two datagrams lost in a row still come."""
+    bundler = Bundler(FPS)
+    bundler.redundant = bundler.losing = True
+    bundles = []
+    for i in range(5):
+        bundler.add(delta(i), frame=True)
+        bundler.add(bytes(AudioFrame(i, i * 20_000, b"opus")))
+        bundles += bundler.end_frame(1000 + i / FPS, 1e6)
+    assert len(bundles) == 5
+    sound = [bytes(AudioFrame(i, i * 20_000, b"opus")) for i in range(5)]
+    assert list(unpack(bundles[3])) == [delta(1), delta(2), sound[2], delta(3), sound[3]]
+    for lost in range(3):  # datagrams lost, lost + 1 lost; lost + 2 arrives
+        came = [e for b in (bundles[:lost] + bundles[lost + 2 :]) for e in unpack(b)]
+        assert all(delta(i) in came for i in range(5)), lost
+    # Once the loss stopped (the repeats still run), only the last datagram is repeated.
+    bundler.losing = False
+    bundler.add(delta(5), frame=True)
+    assert list(unpack(bundler.end_frame(1000 + 5 / FPS, 1e6)[0])) == [delta(4), sound[4], delta(5)]
+
+
 @pytest.mark.parametrize("budget, k", [(1e6, 1), (32_000, 2), (16_000, 3), (8_000, 4)])
 def test_end_frame_sends_every_k_frames(budget: float, k: int) -> None:
     bundler = Bundler(FPS)
