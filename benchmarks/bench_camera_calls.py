@@ -9,7 +9,9 @@ stage, then calls each as a person would: ``facewire receive --record`` and ``fa
 ``--max-size`` 1280x720, so 1920x1080 is sent at 1280x720). Prints the size the receiver
 rendered, the frames it rendered, both ends' frame rates (frames over their own busy time),
 the glass-to-glass latency and the load average around the call: both ends share this
-machine's two cores with whatever else runs.
+machine's two cores with whatever else runs. ``--max-kbps`` is the sender's: at its default
+(32 kbit/s) two frames share a datagram, and each is drawn one frame interval later than with
+a datagram each (``--max-kbps 48``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,11 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--clips", type=Path, help="keep the clips made here (default: a temp dir)")
     p.add_argument("--only", nargs="*", help="clip names (default: all but 640x480)")
+    p.add_argument(
+        "--max-kbps",
+        type=float,
+        help="the sender's budget (default its own, 32: two frames a datagram; 48 sends one)",
+    )
     args = p.parse_args()
     names = args.only or [n for n in CLIPS if n != "640x480"]
     with tempfile.TemporaryDirectory() as tmp:
@@ -47,7 +54,8 @@ def main() -> int:
             width, height = capped_size(int(video.get(3)), int(video.get(4)), 1280, 720)
             video.release()
             before = os.getloadavg()[0]
-            stats, sender = call(clip, folder, "1280x720", args.frames)
+            budget = () if args.max_kbps is None else ("--max-kbps", f"{args.max_kbps:g}")
+            stats, sender = call(clip, folder, "1280x720", args.frames, budget)
             lat = stats["latency_ms"]
             rendered = stats["frames_out"] - stats["frames_held"]
             print(

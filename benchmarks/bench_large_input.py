@@ -42,7 +42,9 @@ def make_clip(path: Path, size: tuple[int, int], frames: int) -> None:
     source.release()
 
 
-def call(clip: Path, folder: Path, max_size: str, frames: int) -> tuple[dict, str]:
+def call(
+    clip: Path, folder: Path, max_size: str, frames: int, send_args: tuple[str, ...] = ()
+) -> tuple[dict, str]:
     address = f"tcp://127.0.0.1:{free_ports(2)}"
     stats = folder / f"{clip.stem}-{max_size}.json"
     receiver = Facewire(
@@ -51,7 +53,7 @@ def call(clip: Path, folder: Path, max_size: str, frames: int) -> tuple[dict, st
     )  # fmt: skip
     sender = Facewire(
         "send", "--connect", address, "--plain", "--input", str(clip), "--max-size", max_size,
-        "--frames", str(frames), "--stats", str(folder / "sender.json"),
+        "--frames", str(frames), "--stats", str(folder / "sender.json"), *send_args,
     )  # fmt: skip
     try:
         if sender.wait(600) != 0 or receiver.wait(120) != 0:

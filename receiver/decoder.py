@@ -168,6 +168,7 @@ class FaceDecoder:
             self.mesh.uvs if layout is None else layout.uvs,
             self.texture,
             self.background,
+            multisample=False,  # the face is feathered (draw_vertices): no edge to smooth
         )
         # Where the snapshot frame showed the face outline: the surroundings of the head are
         # carried from there to wherever the face is drawn.

@@ -98,7 +98,12 @@ class FaceRenderer:
 
     Shading is unlit (the texture comes from video and already holds the lighting), the
     surface is double-sided and the texture is sampled bilinearly without mipmaps. The edge
-    of the face is antialiased (4x multisampling) and blended with the background.
+    of the face is antialiased (4x multisampling) and blended with the background; with
+    ``multisample=False`` one sample a pixel is drawn, for a caller that feathers the face
+    (:meth:`render`'s ``feather_px``): the feather gives the outline's pixels no weight (the
+    fade starts inside them), and at a 400 px face 4x samples took 3.4 ms more a frame on
+    llvmpipe. (The lips' edge over the mouth's inside, the one edge left, scored as well:
+    docs/what-we-tried.md, "Real time at camera sizes".)
 
     Vertex positions are re-uploaded into the existing GL vertex buffer each frame
     (``glBufferData``, which orphans the old storage instead of waiting for it), rather than
@@ -122,11 +127,13 @@ class FaceRenderer:
         uvs: np.ndarray,
         texture_bgr: np.ndarray,
         background_bgr: np.ndarray | None = None,
+        multisample: bool = True,
     ) -> None:
         if int(width) <= 0 or int(height) <= 0:
             raise ValueError(f"expected a positive size, got {width}x{height}")
         self.width = int(width)
         self.height = int(height)
+        self.multisample = multisample
         tris = np.asarray(triangles)
         if tris.ndim != 2 or tris.shape[1] != 3 or not np.issubdtype(tris.dtype, np.integer):
             raise ValueError(f"expected (m, 3) int triangles, got {tris.shape} {tris.dtype}")
@@ -187,6 +194,25 @@ class FaceRenderer:
             return owner._read_rgba(inner), None
 
         inner._read_main_framebuffer = read
+        if not multisample:
+            configure = inner._configure_main_framebuffer
+
+            def configure_single_sample() -> None:
+                made = (inner._main_fb_ms, inner._main_fb_dims)
+                configure()
+                # New buffers for a new size (GL may reuse the old ones' names): one sample each.
+                if (inner._main_fb_ms, inner._main_fb_dims) != made:
+                    width, height = inner._main_fb_dims
+                    for buffer, kind in (
+                        (inner._main_cb_ms, GL.GL_RGBA),
+                        (inner._main_db_ms, GL.GL_DEPTH_COMPONENT24),
+                    ):
+                        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, buffer)
+                        GL.glRenderbufferStorageMultisample(
+                            GL.GL_RENDERBUFFER, 0, kind, width, height
+                        )
+
+            inner._configure_main_framebuffer = configure_single_sample
         self._uploaded = False  # GL buffers exist only after the first render
         self._flags = pyrender.RenderFlags.FLAT | pyrender.RenderFlags.RGBA
         logger.debug(
@@ -353,8 +379,8 @@ class FaceRenderer:
 
     def _read_rgba(self, inner: pyrender.Renderer) -> np.ndarray:
         """Resolve the multisampled framebuffer (its top left corner is the frame's pixel
-        ``self._window``[:2]) and read the window: (y1 - y0, x1 - x0, 4) uint8, top row
-        first."""
+        ``self._window``[:2]), or take the single-sampled one as it is, and read the window:
+        (y1 - y0, x1 - x0, 4) uint8, top row first."""
         x0, y0, x1, y1 = self._window
         if x1 <= x0 or y1 <= y0:
             return np.zeros((max(y1 - y0, 0), max(x1 - x0, 0), 4), np.uint8)
@@ -362,11 +388,12 @@ class FaceRenderer:
         w, h = x1 - x0, y1 - y0
         gy0 = height - h  # GL rows start at the bottom
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb_ms)
-        GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, inner._main_fb)
-        GL.glBlitFramebuffer(
-            0, gy0, w, height, 0, gy0, w, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
-        )
-        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb)
+        if self.multisample:
+            GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, inner._main_fb)
+            GL.glBlitFramebuffer(
+                0, gy0, w, height, 0, gy0, w, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR
+            )
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, inner._main_fb)
         buf = GL.glReadPixels(0, gy0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)
         rgba = np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 4)
         return rgba[::-1]

@@ -354,3 +354,39 @@ def test_the_face_fades_in_over_the_feather(mesh):
     beyond = depth.copy()
     beyond[y : y + kept.shape[0], x : x + kept.shape[1]] = 0
     assert kept.size < 0.5 * H * W and not beyond.any()  # the face's box, all of the face
+
+
+def test_one_sample_a_pixel_draws_the_same_feathered_face(mesh):
+    """``multisample=False`` (the decoder's: its face is feathered) draws one sample a pixel:
+    no pixel half covered, where 4x multisampling has many along the outline; over the
+    feather the two pictures agree, since the fade gives the outline's pixels no weight; and
+    a larger face, which needs a new framebuffer, is drawn single-sampled too."""
+    bg = gradient_background()
+    with (
+        FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as four,
+        FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture(), multisample=False) as one,
+    ):
+        for scale in (14.0, 20.0):  # the second face needs a larger framebuffer
+            verts = frontal(mesh.vertices, scale=scale)
+            partly = {}
+            for name, r in (("four", four), ("one", one)):
+                # out = colour * a + background * (1 - a): over black and over white, a pixel
+                # fully covered or not at all differs by 0 or 255, one partly covered between.
+                over_black, mask = r.render(verts, np.zeros_like(bg))
+                over_white, _ = r.render(verts, np.full_like(bg, 255))
+                gap = (over_white.astype(int) - over_black).max(axis=2)
+                partly[name] = np.count_nonzero((gap > 8) & (gap < 247))
+                if name == "four":
+                    mask_four = mask
+                else:
+                    mask_one = mask
+                    save(f"render_one_sample_{scale:g}.png", over_black)
+            assert partly["four"] > 300 and partly["one"] == 0, partly
+            # Covered pixels, the mask: the same but for a few along the outline.
+            assert np.count_nonzero(mask_four != mask_one) < 0.02 * mask_four.sum()
+            soft_four, _ = four.render(verts, bg.copy(), feather_px=6.0)
+            soft_one, _ = one.render(verts, bg.copy(), feather_px=6.0)
+            diff = np.abs(soft_four.astype(int) - soft_one.astype(int))
+            # (Where the two count an outline pixel covered differently, the fade there starts
+            # a pixel over: a sixth of the face against the background, at most.)
+            assert diff.max() <= 40 and diff.mean() < 0.05, (diff.max(), diff.mean())
