@@ -165,7 +165,7 @@ class Playout(Protocol):
 def make_playout(settings: PlayoutSettings, sender_fps: float) -> Playout:
     """The playout ``settings`` ask for, for a sender at ``sender_fps``."""
     if settings.delay_ms == 0:
-        return ArrivalPlayout()
+        return ArrivalPlayout(round(1e6 / sender_fps))
     display_fps = settings.display_fps or sender_fps
     delay_us = None if settings.delay_ms is None else round(settings.delay_ms * 1000)
     return JitterBuffer(delay_us, round(1e6 / display_fps), round(1e6 / sender_fps))
@@ -191,19 +191,27 @@ class ArrivalPlayout:
     their capture times' spacing, so motion keeps the pace it was captured at: each frame is
     due at its capture time plus the least latency a datagram's first frame had over the last
     SPACING_WINDOW_US (each of them shows as late as the first of a bundle that came at once).
-    A frame that comes later than that (the repeat of a lost datagram's frame, with the next
-    frame in the same datagram; a stall) is due at once, so the newest frame overtakes it:
-    a loss costs a frame's picture, not the latency of the frames after it. Frames that a
-    newer one overtook are held in the recording and not drawn.
+    A datagram of one frame where datagrams carry k (a frame whose partner had nothing to
+    send, a keyframe that left at once) counts as the first of k: it came up to k - 1 frame
+    intervals sooner after its capture, and taken as it is, it made every bundle after it
+    late for two seconds, each drawing its last frame alone (a quarter of a 1280x720 call's
+    frames were not drawn). k is the datagrams' usual spacing in frame intervals
+    (``frame_us``, the sender's). A frame that comes later than that (the repeat of a lost
+    datagram's frame, with the next frame in the same datagram; a stall) is due at once, so
+    the newest frame overtakes it: a loss costs a frame's picture, not the latency of the
+    frames after it. Frames that a newer one overtook are held in the recording and not drawn.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, frame_us: int = 33_333) -> None:
+        self.frame_us = frame_us
         self._new: list[tuple[int, _Entry]] = []  # (when it is due, µs receiver clock, entry)
         self._last_seq = -1
         self._batch_arrival: int | None = None
+        self._batch_latency = 0  # arrival minus capture of the last datagram's first frame
         # (arrival, arrival minus capture) of each datagram's first frame, recent ones; the
         # latency kept is the least of them (clocks' offset included, which cancels out).
         self._first: deque[tuple[int, int]] = deque()
+        self._arrivals: deque[int] = deque()  # of the recent datagrams that carried frames
 
     @property
     def pending(self) -> int:
@@ -223,16 +231,34 @@ class ArrivalPlayout:
         entry = _Entry(values, values.capture_us, arrival_us, after_gap)
         if arrival_us != self._batch_arrival:  # the first frame of a datagram
             self._batch_arrival = arrival_us
-            latency = arrival_us - values.capture_us
-            while self._first and self._first[-1][1] >= latency:
-                self._first.pop()
-            self._first.append((arrival_us, latency))
-            while self._first[0][0] < arrival_us - SPACING_WINDOW_US:
-                self._first.popleft()
+            self._batch_latency = arrival_us - values.capture_us
+            self._arrivals.append(arrival_us)
+            while self._arrivals[0] < arrival_us - SPACING_WINDOW_US:
+                self._arrivals.popleft()
+            # As the first of k until a second frame shows it is one of a bundle.
+            alone = self._batch_latency + (self._usual_k() - 1) * self.frame_us
+            self._keep_least(arrival_us, alone)
+        else:
+            self._keep_least(arrival_us, self._batch_latency)
         due = values.capture_us + self._first[0][1]
         if not 0 <= due - arrival_us <= MAX_SPACING_US:
             due = arrival_us  # late for its pace, or not a bundle's spacing: drawn now
         self._new.append((due, entry))
+
+    def _keep_least(self, arrival_us: int, latency: int) -> None:
+        while self._first and self._first[-1][1] >= latency:
+            self._first.pop()
+        self._first.append((arrival_us, latency))
+        while self._first[0][0] < arrival_us - SPACING_WINDOW_US:
+            self._first.popleft()
+
+    def _usual_k(self) -> int:
+        """Frames a datagram usually carries: the median spacing of the recent datagrams in
+        frame intervals (1 until two have come)."""
+        if len(self._arrivals) < 2:
+            return 1
+        spacing = float(np.median(np.diff(np.fromiter(self._arrivals, np.int64))))
+        return int(min(max(round(spacing / self.frame_us), 1), MAX_SPACING_US // self.frame_us))
 
     def poll(self, now_us: int) -> list[Step]:
         ready = [entry for due, entry in self._new if due <= now_us]

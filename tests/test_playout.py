@@ -275,6 +275,29 @@ def test_on_arrival_the_frames_of_one_datagram_are_drawn_at_their_own_pace() -> 
     assert np.allclose(gaps, FRAME_US, atol=1)
 
 
+def test_on_arrival_a_datagram_of_one_frame_among_pairs_keeps_the_pairs_pace() -> None:
+    """Two frames a datagram, but frame 6 had nothing to send and frame 11 is a keyframe
+    that left at once: their datagrams carry one frame, which came sooner after its capture
+    than a pair's first. The pairs after them are still drawn both, 33 ms apart (once, each
+    pair for two seconds drew only its second frame: a quarter of the frames of a 1280x720
+    call were not drawn)."""
+    arrivals = []
+    for seq in range(40):
+        if seq == 6:
+            continue
+        at = OFFSET_US + START_US + seq * FRAME_US + 5_000  # just after its capture
+        if seq % 2 == 0 and seq not in (10, 12):
+            at += FRAME_US  # the first of a pair waits for the second
+        arrivals.append((at, frame(seq), False))
+    steps = play(ArrivalPlayout(), arrivals, arrivals[-1][0] + 200_000)
+    assert [s.seq for _, s in steps if isinstance(s, Record) and s.values is None] == []
+    shown = shows(steps)
+    assert [s.a.seq for _, s in shown] == [seq for seq in range(40) if seq != 6]
+    # From the first pair on, every frame as late as the others: an even pace.
+    late = [t - s.media_us for t, s in shown]
+    assert max(late) - min(late) <= 1, late
+
+
 def test_on_arrival_a_lost_datagrams_repeat_costs_a_picture_not_latency() -> None:
     """One datagram a frame; datagram 4 is lost and its frame comes again with frame 5 (the
     sender's repeat): frame 4 is not drawn, and frame 5 and those after it are drawn as soon
