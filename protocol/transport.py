@@ -66,6 +66,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from facewire.protocol.bundle import MAX_REASSEMBLED
 from facewire.protocol.channels import COUNTER_MOD
+from facewire.protocol.clock import now_us
 from facewire.protocol.constants import (
     BACK_CHANNEL_HWM,
     CHANNEL_CONTROL,
@@ -1070,7 +1071,12 @@ class ReceiverEndpoint(_Endpoint):
             raise
         if self._media is not None:
             self._poller.register(self._media.fileno(), zmq.POLLIN)
-        self._datagram_packets: deque[bytes] = deque()
+        # The packets of the datagrams read, each with when its datagram was read (µs).
+        self._datagram_packets: deque[tuple[bytes, int]] = deque()
+        #: When the packet :meth:`recv` returned last came off the network, µs
+        #: (protocol/clock.py): its datagram's or its ZeroMQ message's reading. Packets that
+        #: waited in this endpoint while the caller drew a picture keep that time.
+        self.arrival_us = 0
         self._recent: set[int] = set()  # digests of the last updates taken (both paths)
         self._recent_order: deque[int] = deque()
         where = "on" if bind else "from"
@@ -1150,7 +1156,8 @@ class ReceiverEndpoint(_Endpoint):
             return
         now = self._clock()
         now_ms = round(now * 1000)
-        self._datagram_packets.extend(self._media.read(now, now_ms))
+        read_us = now_us()
+        self._datagram_packets.extend((data, read_us) for data in self._media.read(now, now_ms))
         self._media.service(now, now_ms)
 
     @property
@@ -1273,17 +1280,21 @@ class ReceiverEndpoint(_Endpoint):
             self._report_late()
             self._read_datagrams()
             if self._datagram_packets:
-                packet = self._take(self._datagram_packets.popleft())
+                data, read_us = self._datagram_packets.popleft()
+                packet = self._take(data)
                 if packet is not None:
+                    self.arrival_us = read_us
                     return packet
                 continue
             try:
                 packet = self._update(self._sub.recv_multipart(zmq.NOBLOCK, copy=False))
+                self.arrival_us = now_us()
             except zmq.Again:
                 try:
                     packet = self._update(
                         self._dealer.recv_multipart(zmq.NOBLOCK, copy=False), spare=True
                     )
+                    self.arrival_us = now_us()
                 except zmq.Again:
                     remaining = _ms(deadline - time.monotonic())
                     if remaining <= 0:

@@ -73,6 +73,9 @@ MAX_WAIT_US = 200_000
 #: Frames of one datagram drawn at their capture times' spacing, up to this far apart (four
 #: frames at 30 fps: the most one datagram carries).
 MAX_SPACING_US = 140_000
+#: The frames' pace follows the datagrams that carried more than one frame while most of
+#: this many last ones did (the sender bundles them), else every datagram's.
+BUNDLED_OF = 8
 #: The frames' pace on arrival follows the least latency of a datagram's first frame over
 #: this long (a path that became slower is followed after it).
 SPACING_WINDOW_US = 2_000_000
@@ -165,7 +168,7 @@ class Playout(Protocol):
 def make_playout(settings: PlayoutSettings, sender_fps: float) -> Playout:
     """The playout ``settings`` ask for, for a sender at ``sender_fps``."""
     if settings.delay_ms == 0:
-        return ArrivalPlayout(round(1e6 / sender_fps))
+        return ArrivalPlayout()
     display_fps = settings.display_fps or sender_fps
     delay_us = None if settings.delay_ms is None else round(settings.delay_ms * 1000)
     return JitterBuffer(delay_us, round(1e6 / display_fps), round(1e6 / sender_fps))
@@ -191,27 +194,29 @@ class ArrivalPlayout:
     their capture times' spacing, so motion keeps the pace it was captured at: each frame is
     due at its capture time plus the least latency a datagram's first frame had over the last
     SPACING_WINDOW_US (each of them shows as late as the first of a bundle that came at once).
-    A datagram of one frame where datagrams carry k (a frame whose partner had nothing to
-    send, a keyframe that left at once) counts as the first of k: it came up to k - 1 frame
-    intervals sooner after its capture, and taken as it is, it made every bundle after it
-    late for two seconds, each drawing its last frame alone (a quarter of a 1280x720 call's
-    frames were not drawn). k is the datagrams' usual spacing in frame intervals
-    (``frame_us``, the sender's). A frame that comes later than that (the repeat of a lost
-    datagram's frame, with the next frame in the same datagram; a stall) is due at once, so
-    the newest frame overtakes it: a loss costs a frame's picture, not the latency of the
-    frames after it. Frames that a newer one overtook are held in the recording and not drawn.
+    While most of the last BUNDLED_OF datagrams carried more than one frame, only those count:
+    a datagram of one frame among them (a frame whose partner had nothing to send, a keyframe
+    that left at once) came a frame interval sooner after its capture than a bundle's first,
+    and taken as it is, it made every bundle after it late for two seconds, each drawing only
+    its last frame (a quarter of a 1280x720 call's frames were not drawn). A frame that comes
+    later than that (the repeat of a lost datagram's frame, with the next frame in the same
+    datagram; a stall) is due at once, so the newest frame overtakes it: a loss costs a
+    frame's picture, not the latency of the frames after it. Frames that a newer one overtook
+    are held in the recording and not drawn.
     """
 
-    def __init__(self, frame_us: int = 33_333) -> None:
-        self.frame_us = frame_us
+    def __init__(self) -> None:
         self._new: list[tuple[int, _Entry]] = []  # (when it is due, µs receiver clock, entry)
         self._last_seq = -1
         self._batch_arrival: int | None = None
         self._batch_latency = 0  # arrival minus capture of the last datagram's first frame
-        # (arrival, arrival minus capture) of each datagram's first frame, recent ones; the
-        # latency kept is the least of them (clocks' offset included, which cancels out).
+        # (arrival, arrival minus capture) of each datagram's first frame, recent ones, the
+        # least kept (clocks' offset included, which cancels out): of every datagram, and of
+        # those that carried more than one frame.
         self._first: deque[tuple[int, int]] = deque()
-        self._arrivals: deque[int] = deque()  # of the recent datagrams that carried frames
+        self._first_of_bundles: deque[tuple[int, int]] = deque()
+        # Whether each of the last datagrams that carried frames carried more than one.
+        self._bundled: deque[bool] = deque(maxlen=BUNDLED_OF)
 
     @property
     def pending(self) -> int:
@@ -232,33 +237,20 @@ class ArrivalPlayout:
         if arrival_us != self._batch_arrival:  # the first frame of a datagram
             self._batch_arrival = arrival_us
             self._batch_latency = arrival_us - values.capture_us
-            self._arrivals.append(arrival_us)
-            while self._arrivals[0] < arrival_us - SPACING_WINDOW_US:
-                self._arrivals.popleft()
-            # As the first of k until a second frame shows it is one of a bundle.
-            alone = self._batch_latency + (self._usual_k() - 1) * self.frame_us
-            self._keep_least(arrival_us, alone)
+            self._bundled.append(False)
+            _keep_least(self._first, arrival_us, self._batch_latency)
         else:
-            self._keep_least(arrival_us, self._batch_latency)
-        due = values.capture_us + self._first[0][1]
+            self._bundled[-1] = True
+            _keep_least(self._first_of_bundles, arrival_us, self._batch_latency)
+        _keep_least(self._first_of_bundles, arrival_us, None)  # (only the window moves)
+        bundling = 2 * sum(self._bundled) > len(self._bundled)
+        least = self._first[0][1]
+        if bundling and self._first_of_bundles:
+            least = self._first_of_bundles[0][1]
+        due = values.capture_us + least
         if not 0 <= due - arrival_us <= MAX_SPACING_US:
             due = arrival_us  # late for its pace, or not a bundle's spacing: drawn now
         self._new.append((due, entry))
-
-    def _keep_least(self, arrival_us: int, latency: int) -> None:
-        while self._first and self._first[-1][1] >= latency:
-            self._first.pop()
-        self._first.append((arrival_us, latency))
-        while self._first[0][0] < arrival_us - SPACING_WINDOW_US:
-            self._first.popleft()
-
-    def _usual_k(self) -> int:
-        """Frames a datagram usually carries: the median spacing of the recent datagrams in
-        frame intervals (1 until two have come)."""
-        if len(self._arrivals) < 2:
-            return 1
-        spacing = float(np.median(np.diff(np.fromiter(self._arrivals, np.int64))))
-        return int(min(max(round(spacing / self.frame_us), 1), MAX_SPACING_US // self.frame_us))
 
     def poll(self, now_us: int) -> list[Step]:
         ready = [entry for due, entry in self._new if due <= now_us]
@@ -276,6 +268,17 @@ class ArrivalPlayout:
         if not self._new:
             return MAX_WAIT_US
         return max(0, min(due for due, _ in self._new) - now_us)
+
+
+def _keep_least(kept: deque[tuple[int, int]], arrival_us: int, latency: int | None) -> None:
+    """Add (``arrival_us``, ``latency``) to ``kept`` (None: add nothing), whose first entry is
+    then the least latency of the last SPACING_WINDOW_US (a monotonic queue)."""
+    if latency is not None:
+        while kept and kept[-1][1] >= latency:
+            kept.pop()
+        kept.append((arrival_us, latency))
+    while kept and kept[0][0] < arrival_us - SPACING_WINDOW_US:
+        kept.popleft()
 
 
 class TransitWindow:

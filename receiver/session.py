@@ -507,11 +507,15 @@ def _receive_session(
             try:
                 waited_from = now_us()
                 packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(waited_from) / 1e6))
-                received = now_us()
+                received = endpoint.arrival_us
                 # A packet that came while the loop waited is stamped when it came; one already
                 # queued (it came while a picture was drawn) only when the loop got back to it,
                 # which says little about the network: it does not count towards the spread.
+                # Each packet has its own datagram's time: the frames of one datagram share it
+                # (the playout draws them at their own pace), and a frame read while this loop
+                # took the ones before it is not stamped before its capture.
                 timed = received - waited_from >= WAITED_US
+                first = received
                 while packet is not None and not isinstance(packet, Bye):
                     if audio is not None and isinstance(packet, AudioFrame):
                         audio.push(packet, now_us())
@@ -540,6 +544,8 @@ def _receive_session(
                             broken = False
                             needed = max(needed, values.seq + 1)
                     packet = endpoint.recv(timeout_ms=0)
+                    received = endpoint.arrival_us
+                    timed = timed and received == first
             except RejoinNeeded as exc:
                 return player.ended(f"sender restarted ({exc})", exc.session)
             if decoder.channels.intact:

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from transport_helpers import TIMEOUT_MS, frame, join, open_media_path, snapshot
 
+from facewire.protocol.clock import now_us
 from facewire.protocol.media_path import BUCKET_S, DATAGRAM_COST
-from facewire.protocol.packets import KeyframeRequest, RemPatch
+from facewire.protocol.packets import AudioFrame, KeyFrame, KeyframeRequest, RemPatch
 from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
 
@@ -94,3 +95,33 @@ def test_a_keyframe_leaves_at_once_but_brings_patches_only_within_the_budget(
     sent = after["wire_bytes_sent"] - before["wire_bytes_sent"]
     share = sender.budget_bps() * BUCKET_S / 8  # the most the token bucket holds
     assert sent <= len(bytes(keyframe)) + share + 2 * DATAGRAM_COST
+
+
+def test_each_packet_is_stamped_when_its_datagram_was_read(
+    ends: tuple[SenderEndpoint, ReceiverEndpoint],
+) -> None:
+    """``arrival_us`` times the frames the receive loop plays out: the packets of one
+    datagram share it (the playout draws a bundle's frames at their own pace), and a datagram
+    that came while the caller was busy with the ones before is stamped when it was read,
+    never before it was sent (the loop once stamped every packet it took in a row with the
+    first one's time: frames of a call's first second seemed to come before their capture)."""
+    sender, receiver = ends
+    while receiver.recv(50) is not None:
+        pass
+    sent = now_us()
+    sender.publish(AudioFrame(0, sent, b"opus"))
+    sender.publish(frame(1))  # a keyframe leaves at once, with what was due before it
+    got: dict[str, int] = {}
+    deadline = time.monotonic() + TIMEOUT_MS / 1000
+    while len(got) < 2:
+        assert time.monotonic() < deadline, f"received: {got}"
+        packet = receiver.recv(30)
+        if isinstance(packet, (AudioFrame, KeyFrame)):
+            got[type(packet).__name__] = receiver.arrival_us
+    assert got["AudioFrame"] == got["KeyFrame"] >= sent
+    busy = now_us()
+    sender.publish(frame(2))
+    time.sleep(0.05)  # the caller draws a picture meanwhile
+    packet = receiver.recv(TIMEOUT_MS)
+    assert isinstance(packet, KeyFrame) and packet.seq == 2
+    assert busy + 50_000 <= receiver.arrival_us <= now_us()
