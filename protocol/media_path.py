@@ -588,13 +588,14 @@ class Bundler:
             self.bulk_bytes_waiting -= taken
             chunks += bulk
         elements += chunks
-        spend += sum(element_size(len(c)) for c in chunks)
+        spend += _size(chunks)
         out.append(pack(elements))
         self._tokens -= spend
         return out
 
 
 def _size(elements: list[bytes]) -> int:
+    """Bytes ``elements`` take in a bundle."""
     return sum(element_size(len(e)) for e in elements)
 
 
