@@ -11,6 +11,7 @@ import pytest
 from facewire.protocol.bundle import Report
 from facewire.protocol.congestion import (
     CEILING_FACTOR,
+    CLEAN_START_S,
     CEILING_HEADROOM_BPS,
     DECREASE,
     DECREASE_HOLD_S,
@@ -256,6 +257,41 @@ def test_repeats_run_from_the_start_until_the_reports_show_no_loss() -> None:
     assert clean and 2.0 < clean[0] < 8.0  # some seconds of reports without loss
     assert not any(losing for t, _, losing in steps if t < 8.0)
     assert steps[-1][1:] == (True, True)  # loss from 8 s on: repeats again, and fewer frames
+
+
+@pytest.mark.parametrize(
+    ("seconds", "lost_early", "losing_at_start", "losing_after"),
+    [
+        (0.1, False, True, False),  # a fast join: assumed, until clean reports say otherwise
+        (0.1, True, True, True),  # a fast join whose first reports show loss: it stays
+        (0.8, False, False, False),  # a thin link's join (24 kbit/s): headers cost too much
+    ],
+)
+def test_a_fast_join_starts_losing_until_its_reports_show_none(
+    seconds: float, lost_early: bool, losing_at_start: bool, losing_after: bool
+) -> None:
+    """One frame a datagram and the second-level repeats from a fast join on: at 5% loss,
+    datagrams lost before any report said so froze the picture. The path opens before the
+    snapshot is in, so a report or two (of heartbeats) come before the join."""
+    controller = RateController()
+    steps: list[tuple[float, bool]] = []
+
+    def join_at_the_third_report(c: RateController, now: float) -> None:
+        if len(steps) == 2:
+            c.on_join(2300 * 8, seconds)
+        steps.append((now - T0, c.losing))
+
+    simulate(
+        controller,
+        5,
+        lost=(lambda n: n in (13, 19)) if lost_early else (lambda n: False),
+        extra=join_at_the_third_report,
+    )
+    joined = steps[2][0]
+    assert not any(losing for t, losing in steps if t < joined)
+    assert all(losing == losing_at_start for t, losing in steps[3:] if t < joined + 1.0)
+    later = [losing for t, losing in steps if t > joined + CLEAN_START_S + 0.6]
+    assert later and all(losing == losing_after for losing in later)
 
 
 @pytest.mark.parametrize("report_every", [0.25, 0.5])
