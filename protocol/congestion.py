@@ -17,7 +17,9 @@ smallest sample of the last BASE_WINDOW_S is the path's own delay (LEDBAT's base
   queue is not paid for twice.
 - Queueing under QUEUE_LOW_MS and loss under LOSS_LOW: the rate grows by INCREASE a second
   (multiplicatively, as GCC; STARTUP_INCREASE until the first decrease, as NADA's
-  accelerated ramp-up), but never past CEILING_FACTOR times what the receiver got plus a
+  accelerated ramp-up, but only up to the rate the join's snapshot came at: past it a thin
+  link's tbf bucket hides the excess for seconds, and a 24 kbit/s call grew to 36 before a
+  queue of 100 ms cut it), but never past CEILING_FACTOR times what the receiver got plus a
   little (CEILING_HEADROOM_BPS), so a sender that has little to send does not claim a link
   it never tried.
 - It starts low (START_RATE_BPS: the face and a little more), and lower still where the
@@ -117,6 +119,7 @@ class RateController:
         self.losing = False
         self._clean_since: float | None = None  # the first report while assumed
         self._assumed = False
+        self._join_bps = math.inf  # the rate the join's snapshot came at (on_join)
         self._sent: dict[int, float] = {}  # datagram index (low 32 bits) -> send time, s
         self._order: deque[int] = deque()
         self._base: deque[tuple[float, float]] = deque()  # (time, delay sample) rising
@@ -146,6 +149,7 @@ class RateController:
         fast join starts ``losing`` (CLEAN_START_S says why)."""
         if bits <= 0 or seconds <= 0:
             return
+        self._join_bps = bits / seconds
         if bits / seconds >= FAST_JOIN_BPS and not self.losing:
             # Whatever reports came before (the path opens before the snapshot is in: few
             # datagrams, heartbeats) say little of loss.
@@ -263,6 +267,7 @@ class RateController:
             return
         if queue_ms < QUEUE_LOW_MS and loss < LOSS_LOW:
             ceiling = CEILING_FACTOR * received_bps + CEILING_HEADROOM_BPS
-            increase = INCREASE if self.decreases else STARTUP_INCREASE
+            startup = not self.decreases and self.rate_bps < self._join_bps
+            increase = STARTUP_INCREASE if startup else INCREASE
             grown = self.rate_bps * (1.0 + increase * dt)
             self.rate_bps = max(self.rate_bps, min(grown, ceiling))

@@ -155,6 +155,21 @@ def test_stable_delay_no_loss_grows_up_to_its_ceiling() -> None:
     assert controller.decreases == 0
 
 
+def test_past_the_rate_the_join_came_at_the_start_grows_as_after_a_cut() -> None:
+    """A thin link's tbf bucket hides a rate above the link's for seconds (no queue in the
+    reports); grown at 25% a second past it, a 24 kbit/s call reached 36 kbit/s and a queue
+    of 100 ms before the first cut. The join's snapshot measured the link: past its rate
+    the start grows at 8% a second, as after a cut."""
+    joined, plain = RateController(), RateController()
+    joined.on_join(2300 * 8, 0.8)  # 23 kbit/s
+    rates: dict[str, list[float]] = {"joined": [], "plain": []}
+    simulate(joined, 5, extra=lambda c, now: rates["joined"].append(c.rate_bps))
+    simulate(plain, 5, extra=lambda c, now: rates["plain"].append(c.rate_bps))
+    assert rates["joined"][3] == pytest.approx(rates["plain"][3])  # both under 23 at 25%/s
+    assert plain.rate_bps > 40_000
+    assert 23_000 < joined.rate_bps < 23_000 * 1.08**4
+
+
 def test_a_burst_grows_a_fifth_a_report_to_the_estimate() -> None:
     """A sender that sent 12 kbit/s and now has patches to send: what may leave grows with
     each report while the link carries it (1.2 x what came + 4 kbit/s), up to the estimate,
