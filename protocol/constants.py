@@ -180,6 +180,9 @@ REFINE_ATTEMPTS: Final = 3
 #: at 150-250 kbit/s, while a 48 kbit/s link cannot bring it faster than 48.
 SNAPSHOT_MS: Final = "snapshot_ms"
 FAST_JOIN_BPS: Final = 96_000
+#: A draft goes in the datagrams once the receiver's path is open (its key opens it); where
+#: the path has not opened this long after the key, on the snapshot connection instead.
+DRAFT_PATH_WAIT_S: Final = 1.0
 #: Snapshot meta of a new scene's session (the camera cut to another shot: the sender starts a
 #: session from it): the id of the session that began the call it goes on. A receiver of that
 #: call rejoins it in the same call; any other session is a restarted sender's (docs/protocol.md

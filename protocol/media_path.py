@@ -418,6 +418,11 @@ class SenderMediaPath(_Path):
         ]
         return min([most, *rates])
 
+    def send_to(self, identity: bytes, bundle: bytes, now: float) -> bool:
+        """Seal ``bundle`` to the receiver ``identity`` alone, if its path is live."""
+        peer = self._by_identity.get(identity)
+        return peer is not None and peer.live(now) and self._seal_to(peer, bundle, now)
+
     def send(self, bundle: bytes, now: float) -> int:
         """Seal ``bundle`` to every live receiver; how many it went to."""
         sent = 0
@@ -495,11 +500,11 @@ class Bundler:
             self._due_frames.append(data)
 
     def add_patch(self, data: bytes) -> None:
-        self._patches.append((self._number(data), data, 0))
+        self._patches.append((self.number(data), data, 0))
         self.patch_bytes_waiting += len(data)
 
     def add_bulk(self, data: bytes) -> None:
-        self._bulk.append((self._number(data), data, 0))
+        self._bulk.append((self.number(data), data, 0))
         self.bulk_bytes_waiting += len(data)
 
     def drop_bulk(self) -> None:
@@ -507,7 +512,8 @@ class Bundler:
         self._bulk.clear()
         self.bulk_bytes_waiting = 0
 
-    def _number(self, data: bytes) -> int:
+    def number(self, data: bytes) -> int:
+        """The next message number, for ``data`` sent in Fragments (:func:`fragments` too)."""
         if len(data) > MAX_REASSEMBLED:
             raise ValueError(f"a {len(data)}-byte patch is too large for a datagram's fragments")
         self._message = (self._message + 1) % 256
@@ -592,6 +598,16 @@ class Bundler:
         out.append(pack(elements))
         self._tokens -= spend
         return out
+
+
+def fragments(data: bytes, message: int) -> list[bytes]:
+    """``data`` as the Fragments of message ``message``, one bundle each, as full as a
+    datagram takes them."""
+    room = MAX_DATAGRAM - OVERHEAD - FRAGMENT_HEADER - 3  # 3: the element's length, at most
+    return [
+        pack([bytes(Fragment(message, len(data), offset, data[offset : offset + room]))])
+        for offset in range(0, len(data), room)
+    ]
 
 
 def _size(elements: list[bytes]) -> int:
@@ -727,6 +743,9 @@ class ReceiverMediaPath(_Path):
         if not self._live_told or self._fallback_told:
             logger.info("media: datagrams (UDP) from the sender at %s:%d", *self._peer_or())
         self._live_told, self._fallback_told = True, False
+        # At once, not at the next report: the sender learns the path works both ways, and
+        # a draft waiting for it leaves (docs/protocol.md 8.7).
+        self._send(b"")
 
     def _peer_or(self) -> tuple[str, int]:
         return self._peer or self.dest or ("?", 0)

@@ -75,6 +75,7 @@ from facewire.protocol.constants import (
     CHANNELS,
     COPY_WINDOW_S,
     DRAFT_ABOVE_S,
+    DRAFT_PATH_WAIT_S,
     FAST_JOIN_BPS,
     HEARTBEAT_INTERVAL_S,
     LATE_FRAME_MS,
@@ -110,6 +111,7 @@ from facewire.protocol.media_path import (
     ReceiverMediaPath,
     SenderMediaPath,
     WireCounts,
+    fragments,
 )
 from facewire.protocol.packets import (
     AudioFrame,
@@ -118,6 +120,7 @@ from facewire.protocol.packets import (
     Heartbeat,
     KeyFrame,
     KeyframeRequest,
+    Kind,
     MediaKey,
     Packet,
     PacketError,
@@ -127,6 +130,7 @@ from facewire.protocol.packets import (
     Snapshot,
     SnapshotRequest,
     decode,
+    header_byte,
 )
 
 logger = logging.getLogger(__name__)
@@ -150,6 +154,7 @@ _PACED_PATCH_BYTES = 64
 _MAX_DRAIN_DATAGRAMS = 64
 #: Updates remembered to drop the second of two copies that came by both paths.
 _RECENT_UPDATES = 512
+_SNAPSHOT_BYTE = bytes([header_byte(Kind.SNAPSHOT)])
 #: Most messages handled per call of SenderEndpoint.poll (bounds the time spent under flood).
 _MAX_DRAIN = 1000
 _HANDSHAKE_FAILED = (
@@ -503,6 +508,11 @@ class SenderEndpoint(_Endpoint):
         self._draft_bytes = b""
         # identity -> (when the full snapshot may go (again), attempts left) after a draft
         self._refine: dict[bytes, tuple[float, int]] = {}
+        # identity -> (when it goes on ROUTER instead, the draft): drafts that go in the
+        # datagrams once their receiver's path is open (docs/protocol.md 8.7)
+        self._draft_waits: dict[bytes, tuple[float, bytes]] = {}
+        # Receivers whose draft went in the datagrams: a request again soon means one was lost.
+        self._draft_by_datagram: set[bytes] = set()
         # Receivers whose draft came fast: a later snapshot (a new scene's) goes to them whole.
         self._fast: set[bytes] = set()
         self.refinements_sent = 0
@@ -591,6 +601,7 @@ class SenderEndpoint(_Endpoint):
             return
         now = self._clock()
         self._read_media(now)
+        self._send_drafts(now)
         live = self._media.live(now)
         self._bundler.redundant = any(p.controller.lossy for p in live)
         self._bundler.losing = any(p.controller.losing for p in live)
@@ -777,6 +788,7 @@ class SenderEndpoint(_Endpoint):
         self._read_router(0)
         if self._media is not None:
             self._read_media(self._clock())
+            self._send_drafts(self._clock())
         out = list(self._inbox)
         self._inbox.clear()
         return out
@@ -796,7 +808,12 @@ class SenderEndpoint(_Endpoint):
                 raise TransportError(
                     f"no receiver fetched the snapshot within {timeout_s:g} s{hint}"
                 )
-            self._read_router(max(1, _ms(remaining)))
+            if self._draft_waits:  # a draft waits for its receiver's path: serve that too
+                self._read_router(min(10, max(1, _ms(remaining))))
+                self._read_media(self._clock())
+                self._send_drafts(self._clock())
+            else:
+                self._read_router(max(1, _ms(remaining)))
 
     def _read_router(self, timeout_ms: int) -> None:
         if not self._router.poll(timeout_ms, zmq.POLLIN):
@@ -837,6 +854,8 @@ class SenderEndpoint(_Endpoint):
         has the snapshot (and how fast it came), or had frames come late."""
         if values.get("left"):
             self._fast.discard(identity)
+            self._draft_waits.pop(identity, None)
+            self._draft_by_datagram.discard(identity)
             if self._media is not None:
                 self._media.forget(identity)
         if values.get(REFINED) or values.get("left"):
@@ -874,11 +893,17 @@ class SenderEndpoint(_Endpoint):
         if last is not None and now - last < SNAPSHOT_MIN_INTERVAL_S:
             self._refuse(identity, "asked again within the rate limit")
             return
-        if (
-            last is not None
-            and self._served_what.get(identity, (None, 0))[0] == self._snapshot_version
-            and now - last < self._transfer_s()
-        ):
+        if identity in self._draft_waits:
+            self._refuse(identity, "its draft waits for the datagram path")
+            return
+        version, size = self._served_what.get(identity, (None, 0))
+        if identity in self._draft_by_datagram:
+            # A datagram lost is not sent again: after the time it takes at the budget (with
+            # room), a request again means one was.
+            transfer = SNAPSHOT_TRANSFER_ROOM * size * 8 / self.max_bps
+        else:
+            transfer = self._transfer_s()
+        if last is not None and version == self._snapshot_version and now - last < transfer:
             # On a thin link the reply is still on its way: a second copy would only queue
             # behind it (and in front of the media).
             self._refuse(identity, "the same snapshot is still on its way")
@@ -902,20 +927,22 @@ class SenderEndpoint(_Endpoint):
         logger.debug("snapshot request from %s not answered: %s", identity.hex(), reason)
 
     def _serve(self, identity: bytes, now: float) -> None:
+        reply = self._snapshot_bytes
+        bare_s = self._transfer_s() / SNAPSHOT_TRANSFER_ROOM
+        thin = bare_s > DRAFT_ABOVE_S and identity not in self._fast
+        drafted = bool(self._draft_bytes) and self._media is not None and thin
+        if drafted:
+            reply = self._draft_bytes
         try:
             if self._media is not None:  # the media key first: the snapshot ends the join
                 key = self._media.offer(identity, self._clock())
                 data = bytes(key)
                 self._router.send_multipart([identity, data], zmq.NOBLOCK)
                 self._accept_sent(key, data)
-            reply = self._snapshot_bytes
-            bare_s = self._transfer_s() / SNAPSHOT_TRANSFER_ROOM
-            thin = bare_s > DRAFT_ABOVE_S and identity not in self._fast
-            if self._draft_bytes and self._media is not None and thin:
-                reply = self._draft_bytes
-                self._refine[identity] = (now, REFINE_ATTEMPTS)
-            # Never blocks: a peer that left SNAPSHOT_HWM replies unread gets no more.
-            self._router.send_multipart([identity, reply], zmq.NOBLOCK, copy=False)
+                self._media.service(self._clock())  # a connecting sender's first hello
+            if not drafted:
+                # Never blocks: a peer that left SNAPSHOT_HWM replies unread gets no more.
+                self._router.send_multipart([identity, reply], zmq.NOBLOCK, copy=False)
         except zmq.Again:
             self._refuse(identity, "earlier replies still unread")
             return
@@ -926,11 +953,45 @@ class SenderEndpoint(_Endpoint):
             return
         self._served_at[identity] = now
         self._served_what[identity] = (self._snapshot_version, len(reply))
+        self._draft_by_datagram.discard(identity)
+        if drafted:
+            self._refine[identity] = (now, REFINE_ATTEMPTS)
+            # In the datagrams, once the receiver's path is open (it opens on the key): on
+            # a thin link TCP resent a segment of it, and the copy queued ahead of the first
+            # frames (docs/what-we-tried.md, "Two lost in a row, and a draft sent twice").
+            self._draft_waits[identity] = (self._clock() + DRAFT_PATH_WAIT_S, reply)
+            self._send_drafts(self._clock())
+            return
+        self._count_served(reply, "")
+
+    def _count_served(self, reply: bytes, how: str) -> None:
         self.bytes_sent[CHANNEL_SNAPSHOT] += len(reply)
         self.sizes_sent[CHANNEL_SNAPSHOT][len(reply)] += 1
         self.snapshots_served += 1
-        draft = " (its draft)" if reply is self._draft_bytes else ""
-        logger.info("served the snapshot%s (%d bytes)", draft, len(reply))
+        logger.info("served the snapshot%s (%d bytes)", how, len(reply))
+
+    def _send_drafts(self, now: float) -> None:
+        """The drafts waiting for their receiver's path: in the datagrams to it once the path
+        is live, all at once (as TCP would send it), or on ROUTER where it has not opened
+        within DRAFT_PATH_WAIT_S (UDP blocked, or a receiver without it)."""
+        if not self._draft_waits:
+            return
+        assert self._media is not None
+        for identity, (until, draft) in list(self._draft_waits.items()):
+            if self._media.live_for(identity, now):
+                del self._draft_waits[identity]
+                for bundle in fragments(draft, self._bundler.number(draft)):
+                    self._media.send_to(identity, bundle, now)
+                self._draft_by_datagram.add(identity)
+                self._count_served(draft, " (its draft, in the datagrams)")
+            elif now >= until:
+                del self._draft_waits[identity]
+                try:
+                    self._router.send_multipart([identity, draft], zmq.NOBLOCK, copy=False)
+                except zmq.ZMQError:
+                    self._refuse(identity, "earlier replies still unread, or peer gone")
+                    continue
+                self._count_served(draft, " (its draft: no datagram path)")
 
     def _refine_if_fast(self, identity: bytes, snapshot_ms: float | None) -> None:
         """The full snapshot at once on the ROUTER connection to a receiver whose draft came
@@ -1086,6 +1147,8 @@ class ReceiverEndpoint(_Endpoint):
         self._snapshot_where = f"{where} {self._snapshot_address}"
         self.snapshot: Snapshot | None = None
         self.snapshot_ms = 0.0
+        #: Whether the last join's snapshot came in the datagrams (docs/protocol.md 8.7).
+        self.snapshot_in_datagrams = False
         #: When this join first asked for the snapshot (None: not yet): a caller that tries
         #: in short attempts (receiver/session.py) calls fetch_snapshot() again while a draft
         #: still crosses a thin link, and timed from its last attempt the draft seemed to come
@@ -1101,6 +1164,11 @@ class ReceiverEndpoint(_Endpoint):
         self._gone: set[int] = set()  # SUB connections ended before the session's was known
         self._handshake_after_gone = False  # and a SUB connection completed its handshake since
         self._snapshot_fd: int | None = None  # the DEALER connection that brought the snapshot
+        self._key_fd: int | None = None  # ... and the one that brought this join's media key
+        self._join_poller = zmq.Poller()
+        self._join_poller.register(self._dealer, zmq.POLLIN)
+        if self._media is not None:
+            self._join_poller.register(self._media.fileno(), zmq.POLLIN)
         self._newest: tuple[int, float] = (0, clock())  # newest frame number told, and when
         self._rejoin_session: int | None = None
         self._last_heard = clock()
@@ -1133,6 +1201,7 @@ class ReceiverEndpoint(_Endpoint):
             "duplicates": self.stats.duplicates,
             "patches_lost": self._media.patches_lost,
             "malformed_elements": self._media.malformed,
+            "snapshot_in_datagrams": self.snapshot_in_datagrams,
         }
 
     @property
@@ -1220,10 +1289,18 @@ class ReceiverEndpoint(_Endpoint):
             wait = min(remaining, _ms(next_request - now) + 1)
             if self._media is not None and self._media.keyed:
                 # Open the media path while the snapshot crosses: the first frame after the
-                # join then goes as a datagram, not on PUB behind the snapshot's TCP queue.
+                # join then goes as a datagram, not on PUB behind the snapshot's TCP queue;
+                # a draft comes that way itself (docs/protocol.md 8.7).
                 self._read_datagrams()
+                came = self._datagram_snapshot()
+                if came is not None:
+                    return self._joined(*came, self._key_fd, in_datagrams=True)
                 wait = min(wait, _ms(HELLO_INTERVAL_S))
-            if not self._dealer.poll(wait, zmq.POLLIN):
+                # The datagrams wake the join too: a draft may come that way.
+                ready = dict(self._join_poller.poll(wait))
+                if self._dealer not in ready:
+                    continue  # a datagram (read above on the next turn), or the beat
+            elif not self._dealer.poll(wait, zmq.POLLIN):
                 continue
             message = self._dealer.recv(copy=False)
             data = message.bytes
@@ -1236,6 +1313,7 @@ class ReceiverEndpoint(_Endpoint):
                 continue  # a second-path copy of the stream being left
             if isinstance(packet, MediaKey):
                 self._accept(packet, data)
+                self._key_fd = _source(message)
                 if self._media is not None and packet.udp:
                     self._media.take_key(packet, self._clock())
                     self._read_datagrams()  # the first hello
@@ -1243,17 +1321,41 @@ class ReceiverEndpoint(_Endpoint):
             if not isinstance(packet, Snapshot):
                 self._drop(data, f"unexpected {type(packet).__name__} on the snapshot channel")
                 continue
-            self._take_snapshot(packet, data)
-            self._snapshot_fd = _source(message)
-            self._newest = (packet.seq, self._clock())
-            #: How long the snapshot took to come, ms (from the first request): the sender
-            #: learns from it whether the link is fast (docs/protocol.md 8.7).
-            self.snapshot_ms = (time.monotonic() - self._asked) * 1000
-            self._asked = None
-            if self._media is not None:
-                self._media.joined(self._clock())
-            logger.info("snapshot: session %d from seq %d", packet.session_id, packet.seq)
-            return packet
+            return self._joined(packet, data, _source(message))
+
+    def _datagram_snapshot(self) -> tuple[Snapshot, bytes] | None:
+        """A Snapshot among the packets of the datagrams read (sealed with this join's key:
+        the sender's), taken out of them."""
+        for i, (data, _) in enumerate(self._datagram_packets):
+            if data[:1] != _SNAPSHOT_BYTE:
+                continue
+            del self._datagram_packets[i]
+            try:
+                packet = decode(data)
+            except PacketError as exc:
+                self._drop(data, str(exc))
+                return None
+            return (packet, data) if isinstance(packet, Snapshot) else None
+        return None
+
+    def _joined(
+        self, packet: Snapshot, data: bytes, fd: int | None, in_datagrams: bool = False
+    ) -> Snapshot:
+        """The join's snapshot has come (on the connection ``fd``, or in a datagram after
+        the key that came on it)."""
+        self._take_snapshot(packet, data)
+        self._snapshot_fd = fd
+        self.snapshot_in_datagrams = in_datagrams
+        self._newest = (packet.seq, self._clock())
+        #: How long the snapshot took to come, ms (from the first request): the sender
+        #: learns from it whether the link is fast (docs/protocol.md 8.7).
+        self.snapshot_ms = (time.monotonic() - (self._asked or time.monotonic())) * 1000
+        self._asked = None
+        if self._media is not None:
+            self._media.joined(self._clock())
+        how = " (in the datagrams)" if in_datagrams else ""
+        logger.info("snapshot%s: session %d from seq %d", how, packet.session_id, packet.seq)
+        return packet
 
     def recv(self, timeout_ms: int = 0) -> Packet | None:
         """The next update at or after the snapshot's seq, or None after ``timeout_ms``.

@@ -11,8 +11,8 @@ import pytest
 from facewire.protocol.bundle import Report
 from facewire.protocol.congestion import (
     CEILING_FACTOR,
-    CLEAN_START_S,
     CEILING_HEADROOM_BPS,
+    CLEAN_START_S,
     DECREASE,
     DECREASE_HOLD_S,
     MIN_RATE_BPS,

@@ -85,7 +85,8 @@ def test_sender_connects_to_a_bound_receiver(context: Context, keys: Keys, curve
             receiver.request_keyframe(39)
             got: list[object] = []
             assert wait_until(lambda: bool(got), 5, lambda: got.extend(sender.poll(100)))
-            assert got == [KeyframeRequest(39)]
+            # On DEALER, and a copy in a datagram: the media path opened with the join.
+            assert got in ([KeyframeRequest(39)], [KeyframeRequest(39)] * 2)
 
 
 def test_connecting_sender_admits_only_its_allowed_keys(context: Context, keys: Keys) -> None:
