@@ -1165,6 +1165,7 @@ class ReceiverEndpoint(_Endpoint):
         self._handshake_after_gone = False  # and a SUB connection completed its handshake since
         self._snapshot_fd: int | None = None  # the DEALER connection that brought the snapshot
         self._key_fd: int | None = None  # ... and the one that brought this join's media key
+        self._keyed_at: float | None = None  # when that key came (time.monotonic())
         self._join_poller = zmq.Poller()
         self._join_poller.register(self._dealer, zmq.POLLIN)
         if self._media is not None:
@@ -1314,6 +1315,7 @@ class ReceiverEndpoint(_Endpoint):
             if isinstance(packet, MediaKey):
                 self._accept(packet, data)
                 self._key_fd = _source(message)
+                self._keyed_at = time.monotonic()
                 if self._media is not None and packet.udp:
                     self._media.take_key(packet, self._clock())
                     self._read_datagrams()  # the first hello
@@ -1347,9 +1349,11 @@ class ReceiverEndpoint(_Endpoint):
         self._snapshot_fd = fd
         self.snapshot_in_datagrams = in_datagrams
         self._newest = (packet.seq, self._clock())
-        #: How long the snapshot took to come, ms (from the first request): the sender
+        #: How long the snapshot took to come, ms (from the first request; a draft in the
+        #: datagrams from its key, which a lost one's second sending renews): the sender
         #: learns from it whether the link is fast (docs/protocol.md 8.7).
-        self.snapshot_ms = (time.monotonic() - (self._asked or time.monotonic())) * 1000
+        since = self._keyed_at if in_datagrams else self._asked
+        self.snapshot_ms = (time.monotonic() - (since or time.monotonic())) * 1000
         self._asked = None
         if self._media is not None:
             self._media.joined(self._clock())
