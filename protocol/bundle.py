@@ -148,34 +148,65 @@ class Report:
         return cls(highest, arrival, received, nbytes)
 
 
-class Reassembly:
-    """Puts fragmented packets back together; what cannot be finished is given up.
+@dataclass
+class _Partial:
+    total: int
+    parts: dict[int, bytes]  # offset -> data
+    size: int = 0
 
-    Fragments of one message come in order (one sender, one path); a gap means one was lost, and
-    the message is dropped. At most MAX_PARTIAL messages are held at once (the oldest goes).
+
+class Reassembly:
+    """Puts fragmented packets back together, their fragments in any order (a link's jitter
+    reorders datagrams sent together: a snapshot's draft goes as three at once); what cannot
+    be finished is given up.
+
+    The sender numbers its messages in turn (mod 256). At most MAX_PARTIAL are held at once:
+    the oldest goes when a newer one starts, and a fragment of a message MAX_PARTIAL or more
+    behind the newest started is ignored (the rest of one given up, or a straggler). A
+    fragment whose ``total`` is not its message's is another message of that number: the one
+    held is given up. A second copy of a fragment changes nothing.
     """
 
     def __init__(self) -> None:
-        self._partial: dict[int, bytearray] = {}
+        self._partial: dict[int, _Partial] = {}
+        self._newest: int | None = None
         self.lost = 0  # messages given up
 
     def add(self, fragment: Fragment) -> bytes | None:
         """The whole packet when ``fragment`` completes it, else None."""
-        held = self._partial.get(fragment.message)
-        if fragment.offset == 0:
-            if held is not None:
-                self.lost += 1
-            held = self._partial[fragment.message] = bytearray()
+        message = fragment.message
+        if self._newest is not None:
+            behind = (self._newest - message) % 256
+            if MAX_PARTIAL <= behind < 128:
+                return None
+            if behind >= 128:  # ahead: a newer message; those it leaves behind are given up
+                self._newest = message
+                for stale in [m for m in self._partial if MAX_PARTIAL <= (message - m) % 256 < 128]:
+                    del self._partial[stale]
+                    self.lost += 1
+        else:
+            self._newest = message
+        held = self._partial.get(message)
+        if held is not None and held.total != fragment.total:
+            del self._partial[message]
+            self.lost += 1
+            held = None
+        if held is None:
+            held = self._partial[message] = _Partial(fragment.total, {})
             while len(self._partial) > MAX_PARTIAL:
                 del self._partial[next(iter(self._partial))]
                 self.lost += 1
-        elif held is None or len(held) != fragment.offset:
-            if held is not None:
-                del self._partial[fragment.message]
+        if fragment.offset in held.parts:
+            return None
+        held.parts[fragment.offset] = fragment.data
+        held.size += len(fragment.data)
+        if held.size < held.total:
+            return None
+        del self._partial[message]
+        whole = bytearray()
+        for offset in sorted(held.parts):
+            if offset != len(whole):  # overlapping fragments: not a sender's cut
                 self.lost += 1
-            return None
-        held += fragment.data
-        if len(held) < fragment.total:
-            return None
-        del self._partial[fragment.message]
-        return bytes(held)
+                return None
+            whole += held.parts[offset]
+        return bytes(whole) if len(whole) == held.total else None

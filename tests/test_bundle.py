@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import random
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -229,18 +231,35 @@ def test_real_packet_through_fragments() -> None:
     assert [reassembly.add(f) for f in slices(packet, 0, [5])] == [None, None, packet]
 
 
-def test_missing_middle_fragment_drops_the_message() -> None:
+def test_missing_middle_fragment_gives_the_message_up_once_newer_ones_push_it_out() -> None:
     packet = bytes(range(256)) * 4
     parts = slices(packet, 3, [100])
     reassembly = Reassembly()
-    assert reassembly.add(parts[0]) is None
-    assert reassembly.add(parts[1]) is None
     # parts[2] lost
-    assert [reassembly.add(p) for p in parts[3:]] == [None] * (len(parts) - 3)
+    assert [reassembly.add(p) for p in parts[:2] + parts[3:]] == [None] * (len(parts) - 1)
+    assert reassembly.lost == 0  # it may still come: datagrams are reordered
+    # The next messages are put together as if nothing had happened...
+    for message in range(4, 4 + MAX_PARTIAL):
+        assert [reassembly.add(p) for p in slices(packet, message, [700])] == [None, packet]
+    # ... and the eighth after it gives it up.
     assert reassembly.lost == 1
-    # The next message is put together as if nothing had happened.
-    assert [reassembly.add(p) for p in slices(packet, 4, [700])] == [None, packet]
-    assert reassembly.lost == 1
+    assert reassembly.add(parts[2]) is None  # too late: ignored
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(min_size=1, max_size=5000), st.integers(1, 1200), st.randoms())
+def test_fragments_in_any_order_and_twice_give_the_packet_back(
+    packet: bytes, size: int, rng: random.Random
+) -> None:
+    """A link's jitter reorders datagrams sent together (a draft's three at once): in
+    order, the reassembly gave the draft up 6 times running on a 40 +- 10 ms link."""
+    parts = slices(packet, 7, [size])
+    shuffled = parts + parts[: len(parts) // 2]  # some come twice
+    rng.shuffle(shuffled)
+    reassembly = Reassembly()
+    got = [reassembly.add(p) for p in shuffled]
+    assert [g for g in got if g is not None] == [packet]
+    assert reassembly.lost == 0
 
 
 def test_missing_first_fragment_gives_nothing() -> None:
