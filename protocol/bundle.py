@@ -160,32 +160,20 @@ class Reassembly:
     reorders datagrams sent together: a snapshot's draft goes as three at once); what cannot
     be finished is given up.
 
-    The sender numbers its messages in turn (mod 256). At most MAX_PARTIAL are held at once:
-    the oldest goes when a newer one starts, and a fragment of a message MAX_PARTIAL or more
-    behind the newest started is ignored (the rest of one given up, or a straggler). A
-    fragment whose ``total`` is not its message's is another message of that number: the one
-    held is given up. A second copy of a fragment changes nothing.
+    At most MAX_PARTIAL messages are held at once: the oldest goes when another starts (a
+    message missing a fragment is given up so; one that crosses slowly, the full snapshot
+    paced behind the media, is held while the patches around it finish). A fragment whose
+    ``total`` is not its message's is another message of that number: the one held is given
+    up. A second copy of a fragment changes nothing.
     """
 
     def __init__(self) -> None:
         self._partial: dict[int, _Partial] = {}
-        self._newest: int | None = None
         self.lost = 0  # messages given up
 
     def add(self, fragment: Fragment) -> bytes | None:
         """The whole packet when ``fragment`` completes it, else None."""
         message = fragment.message
-        if self._newest is not None:
-            behind = (self._newest - message) % 256
-            if MAX_PARTIAL <= behind < 128:
-                return None
-            if behind >= 128:  # ahead: a newer message; those it leaves behind are given up
-                self._newest = message
-                for stale in [m for m in self._partial if MAX_PARTIAL <= (message - m) % 256 < 128]:
-                    del self._partial[stale]
-                    self.lost += 1
-        else:
-            self._newest = message
         held = self._partial.get(message)
         if held is not None and held.total != fragment.total:
             del self._partial[message]
@@ -209,4 +197,4 @@ class Reassembly:
                 self.lost += 1
                 return None
             whole += held.parts[offset]
-        return bytes(whole) if len(whole) == held.total else None
+        return bytes(whole)

@@ -238,12 +238,14 @@ def test_missing_middle_fragment_gives_the_message_up_once_newer_ones_push_it_ou
     # parts[2] lost
     assert [reassembly.add(p) for p in parts[:2] + parts[3:]] == [None] * (len(parts) - 1)
     assert reassembly.lost == 0  # it may still come: datagrams are reordered
-    # The next messages are put together as if nothing had happened...
-    for message in range(4, 4 + MAX_PARTIAL):
-        assert [reassembly.add(p) for p in slices(packet, message, [700])] == [None, packet]
-    # ... and the eighth after it gives it up.
+    # Messages that finish as they come take no room: it is still held.
+    assert [reassembly.add(p) for p in slices(packet, 4, [700])] == [None, packet]
+    assert reassembly.lost == 0
+    # MAX_PARTIAL others held at once push it out.
+    newer = [slices(packet, m, [700]) for m in range(5, 5 + MAX_PARTIAL)]
+    assert [reassembly.add(n[0]) for n in newer] == [None] * MAX_PARTIAL
     assert reassembly.lost == 1
-    assert reassembly.add(parts[2]) is None  # too late: ignored
+    assert [reassembly.add(n[1]) for n in newer] == [packet] * MAX_PARTIAL
 
 
 @settings(max_examples=200, deadline=None)
@@ -288,10 +290,11 @@ def test_at_most_max_partial_held() -> None:
     for m in range(100):
         assert reassembly.add(parts[m][0]) is None
     assert reassembly.lost == 100 - MAX_PARTIAL
-    for m in range(100 - MAX_PARTIAL):  # given up: their rest is ignored
-        assert [reassembly.add(p) for p in parts[m][1:]] == [None, None]
     assert len(reassembly._partial) == MAX_PARTIAL
     for m in range(100 - MAX_PARTIAL, 100):  # the newest are still held
         assert [reassembly.add(p) for p in parts[m][1:]] == [None, packets[m]]
     assert reassembly.lost == 100 - MAX_PARTIAL
     assert len(reassembly._partial) == 0
+    for m in range(100 - MAX_PARTIAL):  # given up: their rest never makes a packet
+        assert [reassembly.add(p) for p in parts[m][1:]] == [None, None]
+    assert len(reassembly._partial) == MAX_PARTIAL
