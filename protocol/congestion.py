@@ -38,7 +38,6 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from facewire.protocol.constants import FAST_JOIN_BPS
 from facewire.protocol.datagram import IP_UDP_BYTES
 
 logger = logging.getLogger(__name__)
@@ -71,12 +70,15 @@ BASE_WINDOW_S = 30.0
 MIN_RATE_BPS = 6_000.0
 #: Where the estimate starts before any report: a little more than the face alone costs.
 START_RATE_BPS = 16_000.0
-#: A join whose snapshot came at FAST_JOIN_BPS or more (a fast link, as the transport takes
-#: it for the full snapshot) starts ``losing`` too, as if its reports showed loss (one frame a
-#: datagram, the second-level repeats), until they have shown none for CLEAN_START_S: at 5%
-#: loss, datagrams lost before any report said so froze the picture and made the p99 (over
-#: 100 ms in 4 calls of 19; 0 of 20 since). A thin link's join is slower (2.3 KB in 0.8 s at
-#: 24 kbit/s): there one frame a datagram would cost 10 kbit/s of headers.
+#: A join whose snapshot came at more than this (not a thin link) starts ``losing`` too, as
+#: if its reports showed loss (one frame a datagram, the second-level repeats), until they
+#: have shown none for CLEAN_START_S: at 5% loss, datagrams lost before any report said so
+#: froze the picture and made the p99 (over 100 ms in 4 calls of 19; 0 of 20 since). A
+#: thin link's join is slower (2.4 KB in 0.8 s at 24 kbit/s, 0.4 s at 48), and there one
+#: frame a datagram would cost 10 kbit/s of headers. Less than the transport's FAST_JOIN_BPS
+#: (the full snapshot at once on TCP): a 40 ms link's draft came at 96-200 kbit/s, in the
+#: calls under 100 it seemed thin and started at two frames a datagram (p99 105-108).
+ASSUME_LOSS_JOIN_BPS = 64_000.0
 CLEAN_START_S = 1.5
 #: Loss (a slow average of the reports') over which the sender repeats each datagram's updates
 #: in the next one, and under which it stops.
@@ -150,7 +152,7 @@ class RateController:
         if bits <= 0 or seconds <= 0:
             return
         self._join_bps = bits / seconds
-        if bits / seconds >= FAST_JOIN_BPS and not self.losing:
+        if bits / seconds > ASSUME_LOSS_JOIN_BPS and not self.losing:
             # Whatever reports came before (the path opens before the snapshot is in: few
             # datagrams, heartbeats) say little of loss.
             self.losing = self._assumed = True

@@ -279,6 +279,8 @@ def test_repeats_run_from_the_start_until_the_reports_show_no_loss() -> None:
     [
         (0.1, False, True, False),  # a fast join: assumed, until clean reports say otherwise
         (0.1, True, True, True),  # a fast join whose first reports show loss: it stays
+        (0.2, False, True, False),  # a 40 ms link's join, its round trips counted
+        (0.4, False, False, False),  # a 48 kbit/s link's
         (0.8, False, False, False),  # a thin link's join (24 kbit/s): headers cost too much
     ],
 )
