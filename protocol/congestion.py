@@ -72,14 +72,15 @@ MIN_RATE_BPS = 6_000.0
 START_RATE_BPS = 16_000.0
 #: A join whose snapshot came at more than this (not a thin link) starts ``losing`` too, as
 #: if its reports showed loss (one frame a datagram, the second-level repeats), until they
-#: have shown none for CLEAN_START_S: at 5% loss, datagrams lost before any report said so
-#: froze the picture and made the p99 (over 100 ms in 4 calls of 19; 0 of 20 since). A
+#: have shown CLEAN_START_DATAGRAMS in a row arrive: at 5% loss, datagrams lost before any
+#: report said so froze the picture and made the p99 (over 100 ms in 4 calls of 19). A
 #: thin link's join is slower (2.4 KB in 0.8 s at 24 kbit/s, 0.4 s at 48), and there one
 #: frame a datagram would cost 10 kbit/s of headers. Less than the transport's FAST_JOIN_BPS
-#: (the full snapshot at once on TCP): a 40 ms link's draft came at 96-200 kbit/s, in the
-#: calls under 100 it seemed thin and started at two frames a datagram (p99 105-108).
+#: (the full snapshot at once on TCP): a 40 ms link's draft came at 96-200 kbit/s. Counted
+#: in datagrams, not seconds: the first reports come while the receiver builds its decoder,
+#: of a heartbeat or two, and 1.5 s of them said nothing (p99 over 100 in 3 calls of 20).
 ASSUME_LOSS_JOIN_BPS = 64_000.0
-CLEAN_START_S = 1.5
+CLEAN_START_DATAGRAMS = 45  # 1.5 s at a datagram a frame
 #: Loss (a slow average of the reports') over which the sender repeats each datagram's updates
 #: in the next one, and under which it stops.
 LOSS_REPEAT_ON = 0.01
@@ -119,7 +120,7 @@ class RateController:
         #: Whether the reports have shown loss since the repeats last stopped; on a fast join,
         #: also the call's start until its reports show none (:meth:`on_join`).
         self.losing = False
-        self._clean_since: float | None = None  # the first report while assumed
+        self._clean_datagrams = 0  # reported arrived since the assumption, none lost
         self._assumed = False
         self._join_bps = math.inf  # the rate the join's snapshot came at (on_join)
         self._sent: dict[int, float] = {}  # datagram index (low 32 bits) -> send time, s
@@ -148,7 +149,7 @@ class RateController:
         starts at no more than DECREASE times it. On a link no faster than the start, the
         first datagrams (the full snapshot's slices among them) would otherwise fill it and
         build a queue of a third of a second before the first report could cut the rate. A
-        fast join starts ``losing`` (CLEAN_START_S says why)."""
+        fast join starts ``losing`` (ASSUME_LOSS_JOIN_BPS says why)."""
         if bits <= 0 or seconds <= 0:
             return
         self._join_bps = bits / seconds
@@ -156,7 +157,7 @@ class RateController:
             # Whatever reports came before (the path opens before the snapshot is in: few
             # datagrams, heartbeats) say little of loss.
             self.losing = self._assumed = True
-            self._clean_since = None
+            self._clean_datagrams = 0
         if self._prev is not None:
             return  # the reports know the rate better
         self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * bits / seconds))
@@ -227,9 +228,8 @@ class RateController:
         if loss > 0 and self.lossy:
             self.losing, self._assumed = True, False
         elif self._assumed:
-            if self._clean_since is None:
-                self._clean_since = now
-            elif now - self._clean_since >= CLEAN_START_S:
+            self._clean_datagrams += expected
+            if self._clean_datagrams >= CLEAN_START_DATAGRAMS:
                 self.losing = self._assumed = False
         if not self._bytes:
             self._bytes.append((prev[0], prev[2], prev[3]))
