@@ -1,6 +1,7 @@
 """Glass-to-glass latency of a call between two hosts on this machine, through the commands.
 
 Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_call_hosts.py [--frames N] [--runs N]
+           [--lossy-only]
 
 ``facewire receive`` and ``facewire send`` (CURVE keys, the bundled clip at 30 fps) run as
 separate processes, first on 127.0.0.1, then in two network namespaces joined by a link with
@@ -9,7 +10,8 @@ netem's delay 40 ms ± 10 ms each way, without and with 5% loss each way (tests/
 relay applying the same model). The namespaces share CLOCK_MONOTONIC, so the receiver's
 latency (capture to rendered frame) is measured directly. Prints, per link, frames out, the
 latency percentiles, freezes (runs of frames shown stale), the receiver's own frame rate and
-the sound's frames played and concealed.
+the sound's frames played and concealed. Run ``n`` of a link seeds its loss and jitter with ``n``;
+``--lossy-only`` runs the lossy link alone.
 Needs root for the namespaces; prints why and measures loopback only otherwise.
 """
 
@@ -93,15 +95,20 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--runs", type=int, default=1)
+    p.add_argument("--lossy-only", action="store_true", help="the 5%% loss link alone")
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        show("loopback", [call(folder, args.frames, None) for _ in range(args.runs)], [])
+        if not args.lossy_only:
+            show("loopback", [call(folder, args.frames, None) for _ in range(args.runs)], [])
         reason = unavailable()
         if reason is not None:
             print(f"namespaces: skipped ({reason})")
             return 0
-        for netem in (Netem(40, 10, 0.0), Netem(40, 10, 0.05)):
+        links = (
+            [Netem(40, 10, 0.05)] if args.lossy_only else [Netem(40, 10, 0.0), Netem(40, 10, 0.05)]
+        )
+        for netem in links:
             runs, relayed = [], []
             for run in range(args.runs):
                 with TwoHosts(netem, seed=run + 1) as hosts:

@@ -513,6 +513,8 @@ class SenderEndpoint(_Endpoint):
         self._draft_waits: dict[bytes, tuple[float, bytes]] = {}
         # Receivers whose draft went in the datagrams: a request again soon means one was lost.
         self._draft_by_datagram: set[bytes] = set()
+        # ... and those it went to again: how long it took says nothing of their link.
+        self._draft_resent: set[bytes] = set()
         # Receivers whose draft came fast: a later snapshot (a new scene's) goes to them whole.
         self._fast: set[bytes] = set()
         self.refinements_sent = 0
@@ -856,15 +858,18 @@ class SenderEndpoint(_Endpoint):
             self._fast.discard(identity)
             self._draft_waits.pop(identity, None)
             self._draft_by_datagram.discard(identity)
+            self._draft_resent.discard(identity)
             if self._media is not None:
                 self._media.forget(identity)
         if values.get(REFINED) or values.get("left"):
             self._refine.pop(identity, None)
+        # A draft sent again took the time of its loss too: not the link's rate.
+        snapshot_ms = 0.0 if identity in self._draft_resent else values.get(SNAPSHOT_MS)
         if identity in self._refine:
-            self._refine_if_fast(identity, values.get(SNAPSHOT_MS))
+            self._refine_if_fast(identity, snapshot_ms)
         if SNAPSHOT_MS in values and self._media is not None:
             served = self._served_what.get(identity, (None, 0))[1]
-            self._media.ready(identity, self._clock(), served, values[SNAPSHOT_MS])
+            self._media.ready(identity, self._clock(), served, snapshot_ms or 0.0)
         if values.get(LATE_FRAMES, 0) > 0:
             self._open_spare(identity)
 
@@ -907,6 +912,20 @@ class SenderEndpoint(_Endpoint):
             # On a thin link the reply is still on its way: a second copy would only queue
             # behind it (and in front of the media).
             self._refuse(identity, "the same snapshot is still on its way")
+            return
+        if (
+            identity in self._draft_by_datagram
+            and version == self._snapshot_version
+            and self._media is not None
+            and self._media.live_for(identity, self._clock())
+        ):
+            # A datagram of the draft was lost: the draft again, with the same key. A new key
+            # would leave a receiver whose draft came just after it asked on a key the sender
+            # no longer knows: its path down, the call on TCP.
+            self._served_at[identity] = now
+            self._draft_resent.add(identity)
+            self._draft_waits[identity] = (self._clock() + DRAFT_PATH_WAIT_S, self._draft_bytes)
+            self._send_drafts(self._clock())
             return
         if len(self._served_at) >= MAX_SNAPSHOT_PEERS:
             self._served_at = {
@@ -954,6 +973,7 @@ class SenderEndpoint(_Endpoint):
         self._served_at[identity] = now
         self._served_what[identity] = (self._snapshot_version, len(reply))
         self._draft_by_datagram.discard(identity)
+        self._draft_resent.discard(identity)
         if drafted:
             self._refine[identity] = (now, REFINE_ATTEMPTS)
             # In the datagrams, once the receiver's path is open (it opens on the key): on
@@ -1350,8 +1370,8 @@ class ReceiverEndpoint(_Endpoint):
         self.snapshot_in_datagrams = in_datagrams
         self._newest = (packet.seq, self._clock())
         #: How long the snapshot took to come, ms (from the first request; a draft in the
-        #: datagrams from its key, which a lost one's second sending renews): the sender
-        #: learns from it whether the link is fast (docs/protocol.md 8.7).
+        #: datagrams from its key): the sender learns from it whether the link is fast
+        #: (docs/protocol.md 8.7).
         since = self._keyed_at if in_datagrams else self._asked
         self.snapshot_ms = (time.monotonic() - (since or time.monotonic())) * 1000
         self._asked = None

@@ -222,8 +222,8 @@ def test_a_draft_datagram_lost_is_asked_for_and_sent_again(
 ) -> None:
     """The network loses the draft's first datagram: the receiver asks again (every
     SNAPSHOT_RETRY_MS), and once the draft would have crossed at the budget (with room) the
-    sender takes that for a loss and sends it again, with a new key, from which the receiver
-    times it."""
+    sender takes that for a loss and sends it again, with the same key. How long it took
+    then says nothing of the link: the rate control does not start from it."""
     small = draft(snapshot)
     lost: list[bytes] = []
     with SenderEndpoint(plain=True) as sender:
@@ -245,10 +245,33 @@ def test_a_draft_datagram_lost_is_asked_for_and_sent_again(
             took = time.monotonic() - took
             assert receiver.snapshot_in_datagrams and lost
             assert sender.bytes_sent[CHANNEL_SNAPSHOT] == 2 * len(bytes(small))
-            # Timed from the second key: the loss says nothing of the link's rate.
-            assert receiver.snapshot_ms < 500
+            assert receiver.snapshot_ms > 1500  # from the key: the loss's time too
+            receiver.send_stats({"ready": 1.0, SNAPSHOT_MS: receiver.snapshot_ms})
+            sender.poll(timeout_ms=200)
+            # Taken, 2.4 KB in 2 s would have started it at 8 kbit/s.
+            assert sender.media_figures()["rate_kbps"] >= 15
     # Asked again every second; served again after 3 x 2.4 KB at 32 kbit/s: 1.8 s.
     assert 1.5 < took < 3.5, took
+
+
+def test_a_late_request_for_the_draft_leaves_the_path_open(snapshot: Snapshot) -> None:
+    """A request that crossed the draft on its way (the receiver asked again just before it
+    came) brings the draft again on the same key: with a new one, the receiver (joined
+    already, its key the old one) lost its path and the call went on TCP at 150 ms."""
+    small = draft(snapshot)
+    with SenderEndpoint(plain=True) as sender:
+        sender.set_snapshot(snapshot, small)
+        with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
+            join(sender, receiver)
+            time.sleep(2.0)  # past the time the draft takes at the budget
+            receiver._send(SnapshotRequest())  # the late request
+            deadline = time.monotonic() + 2.5  # past PATH_TIMEOUT_S
+            while time.monotonic() < deadline:
+                sender.poll()
+                sender.end_frame()
+                receiver.recv(30)
+            assert receiver.on_udp
+            assert sender.media_figures()["receivers_on_udp"] == 1
 
 
 def test_the_snapshot_is_timed_from_the_joins_first_request(snapshot: Snapshot) -> None:
