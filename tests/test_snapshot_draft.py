@@ -263,13 +263,18 @@ def test_a_late_request_for_the_draft_leaves_the_path_open(snapshot: Snapshot) -
         sender.set_snapshot(snapshot, small)
         with ReceiverEndpoint("127.0.0.1", *sender.ports, plain=True) as receiver:
             join(sender, receiver)
-            time.sleep(2.0)  # past the time the draft takes at the budget
+
+            def call_for(seconds: float) -> None:
+                deadline = time.monotonic() + seconds
+                while time.monotonic() < deadline:
+                    sender.poll()
+                    sender.end_frame()
+                    receiver.recv(30)
+
+            call_for(2.0)  # past the time the draft takes at the budget
+            assert receiver.on_udp
             receiver._send(SnapshotRequest())  # the late request
-            deadline = time.monotonic() + 2.5  # past PATH_TIMEOUT_S
-            while time.monotonic() < deadline:
-                sender.poll()
-                sender.end_frame()
-                receiver.recv(30)
+            call_for(2.5)  # past PATH_TIMEOUT_S
             assert receiver.on_udp
             assert sender.media_figures()["receivers_on_udp"] == 1
 
