@@ -153,14 +153,14 @@ class RateController:
         if bits <= 0 or seconds <= 0:
             return
         self._join_bps = bits / seconds
-        if bits / seconds > ASSUME_LOSS_JOIN_BPS and not self.losing:
+        if self._join_bps > ASSUME_LOSS_JOIN_BPS and not self.losing:
             # Whatever reports came before (the path opens before the snapshot is in: few
             # datagrams, heartbeats) say little of loss.
             self.losing = self._assumed = True
             self._clean_datagrams = 0
         if self._prev is not None:
             return  # the reports know the rate better
-        self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * bits / seconds))
+        self.rate_bps = max(MIN_RATE_BPS, min(self.rate_bps, DECREASE * self._join_bps))
         logger.debug(
             "rate starts at %.1f kbit/s: the snapshot's %d bytes came in %.0f ms",
             self.rate_bps / 1000, bits // 8, seconds * 1000,

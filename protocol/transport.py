@@ -979,8 +979,8 @@ class SenderEndpoint(_Endpoint):
             # In the datagrams, once the receiver's path is open (it opens on the key): on
             # a thin link TCP resent a segment of it, and the copy queued ahead of the first
             # frames (docs/what-we-tried.md, "Two lost in a row, and a draft sent twice").
+            # (Not now: the key just made has no path yet.)
             self._draft_waits[identity] = (self._clock() + DRAFT_PATH_WAIT_S, reply)
-            self._send_drafts(self._clock())
             return
         self._count_served(reply, "")
 
