@@ -31,23 +31,38 @@ def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return dx * dx + dy * dy
 
 
+def _spans_the_plane(controls: np.ndarray) -> bool:
+    """Whether the points (n, 2) fix an affine map of the plane: three not on one line."""
+    if len(controls) < 3:
+        return False
+    centred = controls - controls.mean(0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    return bool(singular[1] > 1e-9 * max(singular[0], 1.0))
+
+
 class ThinPlate:
     """The thin-plate spline taking ``controls`` (n, 2) to ``values`` (n, d), with
     ``smoothing`` (units of the squared coordinates) on the diagonal: it passes near the values
-    rather than through them, and nearly coincident controls stay stable."""
+    rather than through them, and nearly coincident controls stay stable.
+
+    Controls that do not span the plane (fewer than three, or all on one line) leave the
+    affine part's slopes undetermined: the spline then has a constant part only (one control
+    gives its value everywhere, none gives 0) instead of a singular system."""
 
     def __init__(self, controls: np.ndarray, values: np.ndarray, smoothing: float) -> None:
-        self.controls = c = np.asarray(controls, dtype=np.float64)
-        n = len(c)
-        system = np.zeros((n + 3, n + 3))
+        self.controls = c = np.asarray(controls, dtype=np.float64).reshape(-1, 2)
+        n, d = len(c), np.shape(values)[1]
+        affine = np.c_[np.ones(n), c] if _spans_the_plane(c) else np.ones((n, 1))
+        k = affine.shape[1]
+        system = np.zeros((n + k, n + k))
         system[:n, :n] = _kernel(squared_distances(c, c)) + smoothing * np.eye(n)
-        system[:n, n] = 1.0
-        system[:n, n + 1 :] = c
-        system[n, :n] = 1.0
-        system[n + 1 :, :n] = c.T
-        rhs = np.zeros((n + 3, np.shape(values)[1]))
+        system[:n, n:] = affine
+        system[n:, :n] = affine.T
+        rhs = np.zeros((n + k, d))
         rhs[:n] = values
-        self._coef = np.linalg.solve(system, rhs)
+        coef = np.zeros((n + 3, d))  # no slopes where the controls do not give them
+        coef[: n + k] = np.linalg.solve(system, rhs) if n else 0.0
+        self._coef = coef
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(m, d) the spline at ``points`` (m, 2)."""

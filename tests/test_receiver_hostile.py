@@ -15,7 +15,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from facewire.models.face_channels import POSE_ROTATION, POSE_SCALE, pose_from_channels
@@ -89,6 +89,9 @@ def test_the_receive_loop_counts_it_as_malformed(decoder: FaceDecoder, snapshot:
     st.integers(0, 15),
     st.one_of(st.integers(-(2**24), 2**24), st.sampled_from([2**24, -(2**24), 2**17, -(2**17)])),
 )
+# A camera's corner moved 580 px: the surroundings' warp kept one control of the head's and
+# its spline's solve raised LinAlgError (found by a fresh clone's run).
+@example(channel="camera", index=0, value=714)
 def test_any_value_is_drawn_or_refused(
     decoder: FaceDecoder, snapshot: Snapshot, channel: str, index: int, value: int
 ) -> None:

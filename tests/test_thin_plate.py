@@ -34,3 +34,15 @@ def test_many_points_at_once_are_each_where_the_spline_puts_them_alone() -> None
     points = rng.uniform(0, 1280, (1000, 2))
     alone = np.vstack([spline(p[None]) for p in points])
     assert np.allclose(spline(points), alone, rtol=0.0, atol=1e-9)
+
+
+def test_controls_that_fix_no_plane_give_a_constant_not_a_singular_system() -> None:
+    # The surroundings' warp keeps only the controls that do not fold the picture: a hostile
+    # camera value left one, and the solve raised instead of drawing (or refusing) the frame.
+    points = np.random.default_rng(3).uniform(-500, 500, (50, 2))
+    one = ThinPlate(np.array([[10.0, 20.0]]), np.array([[3.0, -4.0]]), 1.0)
+    assert np.allclose(one(points), [3.0, -4.0])
+    assert np.array_equal(ThinPlate(np.zeros((0, 2)), np.zeros((0, 2)), 1.0)(points), 0 * points)
+    line = np.c_[np.linspace(0, 100, 5), np.linspace(0, 50, 5)]
+    along = ThinPlate(line, np.c_[np.full(5, 2.0), np.full(5, 7.0)], 1.0)
+    assert np.allclose(along(points), [2.0, 7.0], atol=1e-9)  # a constant stays one
