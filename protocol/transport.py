@@ -610,7 +610,7 @@ class SenderEndpoint(_Endpoint):
         self._bundler.hurry = any(p.controller.wants_reports(now) for p in live)
         if self._refine:
             self._send_refinements(now)
-        packing = self._media.budget_bps(now, self.max_bps, congested_only=True)
+        packing = self._media.packing_bps(now, self.max_bps)
         for bundle in self._bundler.end_frame(now, self.budget_bps(), packing):
             self._media.send(bundle, now)
 

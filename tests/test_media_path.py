@@ -39,6 +39,7 @@ from facewire.protocol.media_path import (
     Bundler,
     ReceiverMediaPath,
     SenderMediaPath,
+    _on_this_machine,
     frames_per_datagram,
 )
 from facewire.protocol.packets import (
@@ -506,6 +507,19 @@ UPDATES = [
     bytes(AudioFrame(70, 1_400_000, b"\xfc" * 40)),
     bytes(Heartbeat(3050556106, 42, 1_500_000)),
 ]
+
+
+def test_a_receiver_on_this_machine_gets_a_datagram_a_frame(open_call: Call) -> None:
+    """On loopback the headers cost no link anything: the packing does not follow the default
+    budget there, and no frame waits for the next one's (33 ms of latency at 30 fps). Between
+    two hosts it does (the budget's two frames a datagram: the 14 kbit/s of a clean link)."""
+    assert open_call.sender.packing_bps(open_call.t, DEFAULT_BUDGET_BPS) == math.inf
+    assert frames_per_datagram(open_call.sender.packing_bps(open_call.t, 1_000.0), FPS) == 1
+    for address in ["127.0.0.1", "127.8.0.1", "::1"]:
+        assert _on_this_machine((address, 5555))
+    for address in ["192.0.2.2", "10.200.0.2", "fe80::1", "localhost", ""]:
+        assert not _on_this_machine((address, 5555))
+    assert not _on_this_machine(None)
 
 
 @pytest.mark.timeout(20)
