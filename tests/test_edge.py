@@ -15,6 +15,7 @@ from facewire.models.edge import (
     correct,
     edge_field,
     edge_points,
+    move,
     outline_ring,
 )
 from facewire.models.surround import SurroundWarp
@@ -99,6 +100,21 @@ def test_the_receiver_moves_the_edge_and_keeps_the_face_inside() -> None:
     assert error(out) < 0.35 * error(drawn)
     # No corrections: the very same picture.
     assert correct(drawn, face.astype(bool), o, np.zeros((EDGE_POINTS, 2)), band) is drawn
+
+
+def test_a_colour_region_moves_as_each_of_its_channels_alone() -> None:
+    # The colour picture goes through a fourth channel (OpenCV's fast remap): the same values
+    # as each channel moved on its own, in the same order, from a region of a larger picture.
+    rng = np.random.default_rng(5)
+    picture = rng.integers(0, 256, (300, 260, 3), dtype=np.uint8)
+    region = picture[20:260, 10:250]
+    coarse = rng.uniform(-6, 6, (16, 16, 2)).astype(np.float32)
+    field = cv2.resize(coarse, (240, 240), interpolation=cv2.INTER_LINEAR)
+    moved = move(region, field)
+    assert moved.shape == region.shape and moved.dtype == np.uint8
+    alone = np.dstack([move(np.ascontiguousarray(region[:, :, c]), field) for c in range(3)])
+    assert np.array_equal(moved, alone)
+    assert not np.array_equal(moved, region)
 
 
 def test_the_edge_moves_all_round_the_face_its_top_and_bottom_too() -> None:
