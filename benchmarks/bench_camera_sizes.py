@@ -168,7 +168,10 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
         stages.wrap(encoder.refresh, "measure", "refresh")
     stages.wrap(decoder.surround, "warp", "surround warp")
     stages.wrap(decoder.refresh, "over", "refresh shown")
-    stages.wrap(decoder.renderer, "render", "render")
+    # Drawn before the surroundings' warp and read after it (FaceRenderer.draw): llvmpipe's
+    # threads rasterise meanwhile, and their CPU counts in the warp's stage.
+    stages.wrap(decoder.renderer, "draw", "render")
+    stages.wrap(decoder.renderer, "finish", "render")
     stages.wrap(decoder.renderer, "_read_rgba", "readback")
     stages.wrap(receiver_decoder, "correct", "edge correct")
     out = folder / f"{clip.stem}-received.mp4"  # beside the clip, never over it

@@ -364,6 +364,9 @@ class FaceDecoder:
         the body's motion of :meth:`body` (the playout draws pictures between two frames
         this way)."""
         outline = vertices[self._outline, :2]
+        # The face first: llvmpipe rasterises it on its own threads while the surroundings
+        # are warped here (FaceRenderer.draw).
+        self.renderer.draw(self._drawn(vertices))
         person = None if body is None else camera @ body
         background = self.surround.warp(vertices[self._outline], camera, body=person)
         # What the model misses, as the camera saw it: over the surroundings, under the face.
@@ -371,7 +374,7 @@ class FaceDecoder:
         # The face's edge fades into the background (the snapshot frame, carried along), which
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))
-        image, face = self.renderer.render(self._drawn(vertices), background, feather)
+        image, face = self.renderer.finish(background, feather)
         if edge is None:
             return image
         # The feathered edge and the surroundings go where the sender saw them.

@@ -186,12 +186,14 @@ class FaceRenderer:
         #: is the frame's pixel (x, y): (x, y, distances); None without a feathered face. The
         #: edge's correction keeps the face's inside by it (models/edge.py).
         self.depth: tuple[int, int, np.ndarray] | None = None
-        me = weakref.ref(self)  # no cycle through the renderer: a dropped one is freed at once
 
-        def read(scene: object, flags: int) -> tuple[np.ndarray, None]:
-            owner = me()
-            assert owner is not None  # it is rendering, so it is alive
-            return owner._read_rgba(inner), None
+        self._inner = inner
+        self._drawn_window: tuple[int, int, int, int] | None = None  # drawn, not read yet
+
+        def read(scene: object, flags: int) -> tuple[None, None]:
+            # Not now: pyrender has flushed the drawing, and llvmpipe rasterises it on its own
+            # threads while the caller does other work; :meth:`finish` reads it.
+            return None, None
 
         inner._read_main_framebuffer = read
         if not multisample:
@@ -295,7 +297,8 @@ class FaceRenderer:
         background_bgr: np.ndarray | None = None,
         feather_px: float = 0.0,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Draw the mesh at ``image_vertices`` and composite it over the background.
+        """Draw the mesh at ``image_vertices`` and composite it over the background: a
+        :meth:`draw` and its :meth:`finish` at once.
 
         image_vertices : (n, 3) float, image space (pixels, x right, y down, z away from
             the camera)
@@ -306,6 +309,14 @@ class FaceRenderer:
         returns frame_bgr (height, width, 3) uint8 and mask (height, width) bool, True where
             the face covers the pixel centre (more than half of the multisample coverage).
         """
+        self.draw(image_vertices)
+        return self.finish(background_bgr, feather_px)
+
+    def draw(self, image_vertices: np.ndarray) -> None:
+        """Start drawing the mesh at ``image_vertices`` (as :meth:`render`): the rasterising
+        goes on in llvmpipe's threads until :meth:`finish` reads it back, so the caller's work
+        in between (the surroundings' warp) costs the frame nothing more; at 1280x720 the
+        read then waited 0.05 ms instead of 1.6."""
         if self._renderer is None:
             raise RuntimeError("FaceRenderer is closed")
         v = np.asarray(image_vertices, dtype=np.float64)
@@ -329,8 +340,22 @@ class FaceRenderer:
         self._place_camera(float(v[:, 2].min()), float(v[:, 2].max()))
         self._set_positions(gl)
 
-        rgba, _ = self._renderer.render(self._scene, flags=self._flags)
+        self._renderer.render(self._scene, flags=self._flags)
         self._uploaded = True
+        self._drawn_window = self._window
+
+    def finish(
+        self, background_bgr: np.ndarray | None = None, feather_px: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The face of the last :meth:`draw` read back and composited over the background
+        (the arguments and the result as :meth:`render`'s)."""
+        if self._renderer is None:
+            raise RuntimeError("FaceRenderer is closed")
+        if self._drawn_window is None:
+            raise RuntimeError("FaceRenderer.finish without a draw to finish")
+        self._window, self._drawn_window = self._drawn_window, None
+        self._make_current()
+        rgba = self._read_rgba(self._inner)
         background: np.ndarray | None
         if background_bgr is not None:
             shape = (self.height, self.width, 3)

@@ -197,6 +197,26 @@ def test_two_renderers_in_one_process(mesh):
     assert np.array_equal(np.roll(ma1, 50, axis=1), mb)
 
 
+def test_a_face_drawn_is_read_from_its_own_renderer_after_others_drew(mesh):
+    """The receiver draws the face, warps the surroundings while llvmpipe rasterises, then
+    reads it (FaceRenderer.draw, finish): what another renderer draws in between (another
+    GL context, a window of another size) changes nothing of the first's picture."""
+    img = frontal(mesh.vertices)
+    tex_b = np.full((T, T, 3), 77, np.uint8)
+    background = gradient_background()
+    with (
+        FaceRenderer(W, H, mesh.triangles, mesh.uvs, smooth_texture()) as a,
+        FaceRenderer(W, H, mesh.triangles, mesh.uvs, tex_b) as b,
+    ):
+        alone = a.render(img, background.copy(), 6.0)
+        a.draw(img)
+        b.render(img * [0.5, 0.5, 1.0] + [60, 40, 0])
+        later = a.finish(background.copy(), 6.0)
+        with pytest.raises(RuntimeError, match="without a draw"):
+            a.finish(background.copy(), 6.0)  # each draw is read once
+    assert np.array_equal(alone[0], later[0]) and np.array_equal(alone[1], later[1])
+
+
 def test_a_renderer_dropped_without_closing_breaks_no_other(mesh):
     """A FaceRenderer nobody closed is freed whenever the garbage collector gets to it: that
     must not end the EGL display the other renderers of the process still draw with."""
