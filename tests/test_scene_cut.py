@@ -52,6 +52,15 @@ def test_a_talking_head_is_one_scene_and_a_splice_is_a_cut() -> None:
     assert cuts == [BEFORE]
 
 
+def test_a_phone_held_upright_sees_the_same_cut() -> None:
+    # Its thumbnails are turned the way its frames are (a whole factor of 720x1280).
+    frames = [cv2.rotate(image, cv2.ROTATE_90_CLOCKWISE) for image in spliced()]
+    scene = SceneCut()
+    cuts = [i for i, image in enumerate(frames) if scene.changed(image)]
+    assert cuts == [BEFORE]
+    assert scene.last is not None and scene.last[1].shape == (16, 12)  # upright too
+
+
 def test_another_face_is_one_that_jumps_or_resizes_in_a_frame() -> None:
     face = (100.0, 100.0, 50.0)
     assert not another_face(face, (120.0, 95.0, 52.0))  # a head moving fast
