@@ -4,8 +4,10 @@ Usage: PYOPENGL_PLATFORM=egl python benchmarks/bench_camera_sizes.py [--frames N
     [--only NAME ...]
 
 Makes copies of the bundled clip (640x480) at camera sizes, then runs both ends in one
-process (no sockets, OpenCV on one thread) and times each stage of each frame, as CPU time
-of the whole process (llvmpipe's threads count) and as wall time:
+process (no sockets, OpenCV on one thread) and times each stage of each frame as CPU time of
+the thread that runs it (the scene's and the body's motion are followed on a thread beside
+the tracker; llvmpipe rasterises the face on its own threads while the surroundings are
+warped), and each end's frame as wall time:
 
 - padded to 1280x720 and 1920x1080 (its edges repeated): the face keeps its size while the
   frame grows, so a stage whose time grows down this table works on the frame, not the face;
@@ -124,11 +126,11 @@ class Stages:
         inner = getattr(owner, name)
 
         def timed(*args: Any, **kwargs: Any) -> Any:
-            c0, w0 = time.process_time(), time.perf_counter()
+            c0, w0 = time.thread_time(), time.perf_counter()
             try:
                 return inner(*args, **kwargs)
             finally:
-                self.cpu[stage] += time.process_time() - c0
+                self.cpu[stage] += time.thread_time() - c0
                 self.wall[stage] += time.perf_counter() - w0
 
         setattr(owner, name, timed)
@@ -158,7 +160,8 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
     if encoder.synthesis is not None:
         stages.wrap(encoder.synthesis, "refine", "synthesis")
     stages.wrap(encoder, "analyse", "fit")  # less what it calls, below
-    stages.wrap(encoder.camera, "update", "camera motion")
+    stages.wrap(encoder.camera, "follow", "camera motion")  # beside the tracker
+    stages.wrap(encoder.camera, "settle", "camera settle")  # in analyse, after it
     if encoder.body is not None:
         stages.wrap(encoder.body, "update", "body motion")
     stages.wrap(encoder.edge, "measure", "edge measure")
@@ -166,6 +169,8 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
         stages.wrap(encoder.rem, "changed", "rem")
     if encoder.refresh is not None:
         stages.wrap(encoder.refresh, "measure", "refresh")
+    stages.wrap(encoder, "encode", "sender frame")
+    stages.wrap(decoder, "reconstruct", "receiver frame")
     stages.wrap(decoder.surround, "warp", "surround warp")
     stages.wrap(decoder.refresh, "over", "refresh shown")
     # Drawn before the surroundings' warp and read after it (FaceRenderer.draw): llvmpipe's
@@ -189,7 +194,10 @@ def run(clip: Path, folder: Path, frames: int) -> Iterator[tuple[dict, dict, flo
             recorder.write(decoder.reconstruct(shown))
             cpu, wall = stages.take()
             for times in (cpu, wall):
-                _subtract(times, "fit", ("tracking", "synthesis", "camera motion", "body motion"))
+                _subtract(times, "fit", ("tracking", "synthesis", "camera settle"))
+                times["camera motion"] = times.get("camera motion", 0) + times.pop(
+                    "camera settle", 0
+                )
                 _subtract(times, "render", ("readback",))
             outline = decoder.image_vertices(shown)[decoder.mesh.outline]
             yield cpu, wall, float(np.ptp(outline[:, 0]))
@@ -226,8 +234,8 @@ def main() -> None:
                 for s in (*SENDER, *RECEIVER)
             }
             faces[name] = float(np.median([face for _, _, face in rows]))
-            send = [sum(w.get(s, 0.0) for s in SENDER) for _, w, _ in rows]
-            recv = [sum(w.get(s, 0.0) for s in RECEIVER) for _, w, _ in rows]
+            send = [w["sender frame"] for _, w, _ in rows]
+            recv = [w["receiver frame"] + w["recording"] for _, w, _ in rows]
             # Medians, and means: the refreshes are compared every few frames only.
             walls[name] = tuple(
                 1000 * float(f(t)) for f in (np.median, np.mean) for t in (send, recv)

@@ -122,8 +122,14 @@ class CameraTracker:
 
         ``outline`` is the face outline in ``image`` (None when no face was found).
         """
+        return self.settle(image.shape, outline, self.follow(image))
+
+    def follow(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where the background's corners are in ``image``: (moved (n, 2) frame pixels, found
+        (n,) bool), or None with too few corners. Needs no face, so the sender follows them
+        while its tracker looks for the face (sender/encoder.py); :meth:`settle` takes it."""
         if len(self._points) < MIN_INLIERS:
-            return self.homography
+            return None
         gray = self._followed(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
         guess = cv2.perspectiveTransform(self._points[None], self.homography)[0]
         moved, status, _ = cv2.calcOpticalFlowPyrLK(
@@ -137,9 +143,20 @@ class CameraTracker:
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         moved = (moved + 0.5) / np.float32(self._scale) - 0.5
-        good = status.ravel() == 1
+        return moved, status.ravel() == 1
+
+    def settle(
+        self,
+        shape: tuple[int, ...],
+        outline: np.ndarray | None,
+        followed: tuple[np.ndarray, np.ndarray] | None,
+    ) -> np.ndarray:
+        """:meth:`update` of a frame of ``shape`` whose corners were :meth:`follow`-ed."""
+        if followed is None:
+            return self.homography
+        moved, good = followed
         if outline is not None:
-            good &= ~person_covers(moved, outline)
+            good = good & ~person_covers(moved, outline)
         if good.sum() < MIN_INLIERS:
             return self.homography
         # A similarity (shift, roll, zoom): what a shaking camera does to the scene, and few
@@ -154,14 +171,14 @@ class CameraTracker:
             # Nor is a small motion held, once a still camera fits the points as well: a shake
             # seen once, or points slipping along a bare wall, must not shift the scene for
             # the rest of the call.
-            small = self._corner_shift(self.homography, image.shape) <= SMALL_PX
+            small = self._corner_shift(self.homography, shape) <= SMALL_PX
             still = self._support(np.eye(3), good, moved)
             if small and still >= self._support(self.homography, good, moved):
                 self.homography = np.eye(3)
             return self.homography
         homography = np.vstack([found, [0.0, 0.0, 1.0]])
-        h, w = image.shape[:2]
-        if self._corner_shift(homography, image.shape) > MAX_SHIFT * max(h, w):
+        h, w = shape[:2]
+        if self._corner_shift(homography, shape) > MAX_SHIFT * max(h, w):
             return self.homography  # implausible for a camera shaking: keep the last one
         self.homography = homography
         self.inliers = int(inlier.sum())

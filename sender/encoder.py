@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import secrets
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -196,6 +197,8 @@ class FaceEncoder:
         self._last_values: dict[str, np.ndarray] | None = None
         self.camera: CameraTracker | None = None
         self._camera_shift = np.zeros(CAMERA_SIZE)
+        #: Follows the scene and the body beside the tracker (:meth:`analyse`).
+        self._beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="facewire-motion")
         self.use_body = body
         #: The body's motion below the head (None: not followed, it moves with the scene).
         self.body: BodyTracker | None = None
@@ -446,6 +449,37 @@ class FaceEncoder:
         assert self.session is not None and self.wires is not None, "start() first"
         if self._new_scene:
             return None  # not this session's scene
+        # The scene's and the body's motion need no face: followed on another thread while
+        # the tracker looks for it (OpenCV lets the GIL go), 2-3 ms of a 1280x720 frame.
+        beside = None if self.camera is None else self._beside.submit(self._motion, image)
+        face = self._face(image)
+        followed, body = (None, None) if beside is None else beside.result()
+        if face is None:
+            return None
+        pose, params, points = face
+        self.points = points
+        if self.camera is not None:
+            outline = points[self.canonical.outline, :2]
+            homography = self.camera.settle(image.shape, outline, followed)
+            self._camera_shift = corners_from_homography(homography, self.width, self.height)
+            if body is not None:
+                # Sent relative to the scene's motion: a person sitting still sends nothing.
+                own = np.linalg.solve(homography, body)
+                self._body_shift = corners_from_homography(own, self.width, self.height)
+        return pose, params
+
+    def _motion(
+        self, image: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray] | None, np.ndarray | None]:
+        """The background's corners followed into ``image`` (CameraTracker.follow) and the
+        body's motion (BodyTracker.update, None without a body followed)."""
+        assert self.camera is not None
+        return self.camera.follow(image), None if self.body is None else self.body.update(image)
+
+    def _face(self, image: np.ndarray) -> tuple[Pose, np.ndarray, np.ndarray] | None:
+        """(pose, wire parameters, (n, 3) points in image space) of the face tracked in
+        ``image``, or None (no face, or another face: a new scene)."""
+        assert self.session is not None and self.wires is not None
         found = self.tracker.track(image)
         if found is None:
             return None
@@ -468,15 +502,7 @@ class FaceEncoder:
                 points = self.synthesis.refine(image, points)
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
-        self.points = points
-        if self.camera is not None:
-            homography = self.camera.update(image, points[self.canonical.outline, :2])
-            self._camera_shift = corners_from_homography(homography, self.width, self.height)
-            if self.body is not None:
-                # Sent relative to the scene's motion: a person sitting still sends nothing.
-                body = np.linalg.solve(homography, self.body.update(image))
-                self._body_shift = corners_from_homography(body, self.width, self.height)
-        return pose, params
+        return pose, params, points
 
     def projected(self, params: np.ndarray) -> np.ndarray:
         """(K,) wire basis coefficients (cm) closest to wire parameters ``params``."""

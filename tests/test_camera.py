@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,10 @@ from facewire.models.camera import (
     homography_from_corners,
 )
 from facewire.models.face_channels import HYSTERESIS
+from facewire.receiver.decoder import FaceDecoder
 from facewire.sender.camera_motion import CameraTracker, person_covers, person_mask
+from facewire.sender.capture import VideoSource, demo_clip_path
+from facewire.sender.encoder import FaceEncoder
 
 W, H = 352, 288
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -202,3 +206,29 @@ def test_a_large_frame_is_followed_scaled_down_to_a_tenth_of_a_pixel() -> None:
     error = cv2.perspectiveTransform(grid, found) - cv2.perspectiveTransform(grid, truth)
     assert np.abs(error).max() < 0.1, error
     assert np.abs(corners_from_homography(truth, width, height)).max() > 4.0  # it did move
+
+
+def test_a_panning_camera_reaches_the_receiver_as_the_scenes_motion() -> None:
+    """The sender follows the scene on a thread beside its face tracker (sender/encoder.py):
+    the bundled clip panned 0.5 px right and 0.3 px down a frame comes out of the receiver's
+    decoder as the camera's motion, the face's own motion apart."""
+    with VideoSource(demo_clip_path()) as video:
+        frames = list(video.frames(limit=20))
+        encoder = FaceEncoder(video.width, video.height, video.fps)
+    snapshot = encoder.start(frames[0])
+    assert snapshot is not None
+    decoder = FaceDecoder(snapshot)
+    try:
+        shown = None
+        for i, frame in enumerate(frames[1:], start=1):
+            pan = np.float32([[1, 0, 0.5 * i], [0, 1, 0.3 * i]])
+            size = (video.width, video.height)
+            panned = cv2.warpAffine(frame.image, pan, size, borderMode=cv2.BORDER_REFLECT)
+            packet = encoder.encode(dataclasses.replace(frame, image=panned))
+            if packet is not None:
+                shown = decoder.decode(packet)
+        assert shown is not None
+        moved = corners_from_homography(decoder.camera(shown), video.width, video.height)
+    finally:
+        decoder.close()
+    assert np.allclose(moved, [9.5, 5.7, 9.5, 5.7], atol=1.5), moved
