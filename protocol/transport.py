@@ -971,7 +971,7 @@ class SenderEndpoint(_Endpoint):
             self._refuse(identity, "peer gone")
             return
         self._served_at[identity] = now
-        self._served_what[identity] = (self._snapshot_version, len(reply))
+        self._remember_served(identity, (self._snapshot_version, len(reply)))
         self._draft_by_datagram.discard(identity)
         self._draft_resent.discard(identity)
         if drafted:
@@ -1012,6 +1012,20 @@ class SenderEndpoint(_Endpoint):
                     self._refuse(identity, "earlier replies still unread, or peer gone")
                     continue
                 self._count_served(draft, " (its draft: no datagram path)")
+
+    def _remember_served(self, identity: bytes, what: tuple[int, int]) -> None:
+        """Note what ``identity`` was served, forgetting the receivers served longest ago
+        beyond MAX_SNAPSHOT_PEERS: a receiver that reconnects comes back as a new identity,
+        so a sender that runs for days would otherwise keep one record per connection ever
+        made (and its "fast" mark: no receiver would be marked fast after the first 256)."""
+        self._served_what.pop(identity, None)  # the newest last
+        self._served_what[identity] = what
+        while len(self._served_what) > MAX_SNAPSHOT_PEERS:
+            gone = next(iter(self._served_what))
+            del self._served_what[gone]
+            self._draft_by_datagram.discard(gone)
+            self._draft_resent.discard(gone)
+            self._fast.discard(gone)
 
     def _refine_if_fast(self, identity: bytes, snapshot_ms: float | None) -> None:
         """The full snapshot at once on the ROUTER connection to a receiver whose draft came

@@ -17,7 +17,11 @@ import pytest
 import zmq
 from transport_helpers import JPEG, TIMEOUT_MS, Context, frame, join, rss_bytes, snapshot
 
-from facewire.protocol.constants import PROBE_INTERVAL_MS
+from facewire.protocol.constants import (
+    MAX_SNAPSHOT_PEERS,
+    PROBE_INTERVAL_MS,
+    SNAPSHOT_MIN_INTERVAL_S,
+)
 from facewire.protocol.packets import Heartbeat, KeyFrame, SnapshotRequest
 from facewire.protocol.transport import ReceiverEndpoint, SenderEndpoint
 
@@ -183,6 +187,33 @@ def test_snapshot_requests_before_a_snapshot_are_bounded(sender: SenderEndpoint)
         assert len(sender._waiting) == 3  # one entry per peer, however often it asked
         sender.set_snapshot(snapshot())
         assert sender.snapshots_served == 3
+    finally:
+        for dealer in dealers:
+            dealer.close(linger=0)
+        context.term()
+
+
+def test_receivers_served_long_ago_are_forgotten(sender: SenderEndpoint) -> None:
+    """Each connection is a new identity: a sender that runs for days keeps a record of what
+    it served for the last MAX_SNAPSHOT_PEERS receivers, not for every connection made."""
+    sender.set_snapshot(snapshot())
+    context: Context = zmq.Context()
+    dealers: list[zmq.Socket] = []
+    try:
+        for batch in range(1, 4):  # 450 receivers, 150 at a time
+            for _ in range(150):
+                dealer = context.socket(zmq.DEALER)
+                dealer.setsockopt(zmq.LINGER, 0)
+                dealer.connect(f"tcp://127.0.0.1:{sender.ports[1]}")
+                dealer.send(bytes(SnapshotRequest()))
+                dealers.append(dealer)
+            deadline = time.monotonic() + 20
+            while sender.snapshots_served < 150 * batch and time.monotonic() < deadline:
+                sender.poll(100)
+            # Not "too many peers asking at once": the last batch's requests are old now.
+            time.sleep(SNAPSHOT_MIN_INTERVAL_S)
+        assert sender.snapshots_served == 450
+        assert len(sender._served_what) == MAX_SNAPSHOT_PEERS
     finally:
         for dealer in dealers:
             dealer.close(linger=0)
