@@ -621,10 +621,16 @@ class Bundler:
         return out
 
 
+def fragment_room(room: int) -> int:
+    """Bytes of a message one Fragment carries in a bundle's ``room`` bytes: less its header
+    and its element's length (3 bytes at most)."""
+    return room - FRAGMENT_HEADER - 3
+
+
 def fragments(data: bytes, message: int) -> list[bytes]:
     """``data`` as the Fragments of message ``message``, one bundle each, as full as a
     datagram takes them."""
-    room = MAX_DATAGRAM - OVERHEAD - FRAGMENT_HEADER - 3  # 3: the element's length, at most
+    room = fragment_room(MAX_DATAGRAM - OVERHEAD)
     return [
         pack([bytes(Fragment(message, len(data), offset, data[offset : offset + room]))])
         for offset in range(0, len(data), room)
@@ -651,7 +657,7 @@ def _serve(
             room += borrow
             borrow = 0
         elif room > FRAGMENT_HEADER + 16:
-            taken = min(len(packet) - offset, room - FRAGMENT_HEADER - 3)
+            taken = min(len(packet) - offset, fragment_room(room))
             part = packet[offset : offset + taken]
             chunk = bytes(Fragment(message, len(packet), offset, part))
         else:
