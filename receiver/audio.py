@@ -54,6 +54,8 @@ MARGIN_US = 10_000
 #: its 20 ms is read (up to 33 ms at 30 fps, and that frame's encoding) and then waits for its
 #: datagram (one every two frames by default, protocol/media_path.py: up to 33 ms more), so
 #: before the first packets have shown what the link does, this keeps them from being late.
+#: Once OWN_TRANSITS packets have come, theirs set it: held for good, it put the sound 119 ms
+#: behind a face drawn 21 ms after capture on loopback (one frame a datagram there).
 MIN_LATENCY_US = 140_000
 #: A step due this much later after its capture than the latency needs now (the first
 #: packets of a call are often slow, or stamped off the later ones' pace: the run's start
@@ -461,12 +463,13 @@ class AudioPlayout:
         usual = self._usual_transit()
         near = [t for t in self._transit if usual is None or abs(t - usual) <= MAX_SKEW_US]
         slowest = max(near, default=0)
-        if len(self._transit) < OWN_TRANSITS and self._video_transit:
+        known = len(self._transit) >= OWN_TRANSITS
+        if not known and self._video_transit:
             # The pictures' typical transit (their median: a stalled frame says nothing of
             # the link), what a sound packet waits for on top of it, and a repeat's datagram.
             pictures = int(np.median(self._video_transit)) + SOUND_AFTER_PICTURE_US + REPEAT_US
             slowest = max(slowest, pictures)
-        own = max(MIN_LATENCY_US, slowest + FRAME_US + MARGIN_US)
+        own = max(0 if known else MIN_LATENCY_US, slowest + FRAME_US + MARGIN_US)
         face = self._face_latency()
         return max(own, face if face is not None else own)
 
