@@ -429,15 +429,12 @@ class SenderMediaPath(_Path):
         ]
         return min([most, *rates])
 
-    def packing_bps(self, now: float, most: float) -> float:
-        """The budget that sets how many frames share a datagram (:func:`frames_per_datagram`):
-        :meth:`budget_bps`'s estimate alone; unbounded where every live receiver is on this
-        machine (loopback), where the headers cost no link anything and sharing a datagram
-        would only make each frame wait for the next (33 ms at 30 fps)."""
+    def on_this_machine(self, now: float) -> bool:
+        """Whether every live receiver is on this machine (a loopback address): there the
+        headers cost no link anything, so frames need not share a datagram (each would wait
+        for the next, 33 ms at 30 fps) and the budget need not count them (Bundler)."""
         live = self.live(now)
-        if live and all(_on_this_machine(p.address) for p in live):
-            return math.inf
-        return self.budget_bps(now, most, congested_only=True)
+        return bool(live) and all(_on_this_machine(p.address) for p in live)
 
     def send_to(self, identity: bytes, bundle: bytes, now: float) -> bool:
         """Seal ``bundle`` to the receiver ``identity`` alone, if its path is live."""
@@ -506,6 +503,9 @@ class Bundler:
         self.patch_bytes_waiting = 0
         self.bulk_bytes_waiting = 0
         self.k = 1
+        #: Bytes each datagram costs the budget besides its bundle: none to a receiver on this
+        #: machine (SenderMediaPath.on_this_machine).
+        self.header_bytes = DATAGRAM_COST
         #: What leaves whatever the budget (frames, sound, heartbeats), bits per second: an
         #: average over about a second.
         self.due_bps = 0.0
@@ -600,7 +600,7 @@ class Bundler:
         self._last_due, self._due = self._due, []
         self._older_frames, self._last_frames = self._last_frames, self._due_frames
         self._due_frames = []
-        spend = size + DATAGRAM_COST * (len(out) + 1)
+        spend = size + self.header_bytes * (len(out) + 1)
         room = int(min(MAX_DATAGRAM - OVERHEAD - size, self._tokens - spend))
         # A patch that the bucket lacks at most its depth for goes whole, once a datagram, the
         # bucket then owing it: sliced, an eye's 150 bytes paid a Fragment's header twice

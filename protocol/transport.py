@@ -564,7 +564,7 @@ class SenderEndpoint(_Endpoint):
         snapshot's full images cross (behind the patches), at most PATCH_SHARE_REFINING of
         it, so that they cross too."""
         budget = self.budget_bps()
-        headers = DATAGRAM_COST * 8 * self._bundler.fps / self._bundler.k
+        headers = self._bundler.header_bytes * 8 * self._bundler.fps / self._bundler.k
         left = max(0.0, budget - headers - self._bundler.due_bps)
         return left * PATCH_SHARE_REFINING if self._bundler.bulk_bytes_waiting else left
 
@@ -610,7 +610,11 @@ class SenderEndpoint(_Endpoint):
         self._bundler.hurry = any(p.controller.wants_reports(now) for p in live)
         if self._refine:
             self._send_refinements(now)
-        packing = self._media.packing_bps(now, self.max_bps)
+        local = self._media.on_this_machine(now)
+        self._bundler.header_bytes = 0 if local else DATAGRAM_COST
+        packing = (
+            math.inf if local else self._media.budget_bps(now, self.max_bps, congested_only=True)
+        )
         for bundle in self._bundler.end_frame(now, self.budget_bps(), packing):
             self._media.send(bundle, now)
 

@@ -509,17 +509,33 @@ UPDATES = [
 ]
 
 
-def test_a_receiver_on_this_machine_gets_a_datagram_a_frame(open_call: Call) -> None:
-    """On loopback the headers cost no link anything: the packing does not follow the default
-    budget there, and no frame waits for the next one's (33 ms of latency at 30 fps). Between
-    two hosts it does (the budget's two frames a datagram: the 14 kbit/s of a clean link)."""
-    assert open_call.sender.packing_bps(open_call.t, DEFAULT_BUDGET_BPS) == math.inf
-    assert frames_per_datagram(open_call.sender.packing_bps(open_call.t, 1_000.0), FPS) == 1
+def test_a_receiver_on_this_machine_is_told_apart(open_call: Call) -> None:
+    """On loopback the headers cost no link anything (the transport then sends a datagram a
+    frame and counts no headers: below); between two hosts they do."""
+    assert open_call.sender.on_this_machine(open_call.t)
     for address in ["127.0.0.1", "127.8.0.1", "::1"]:
         assert _on_this_machine((address, 5555))
     for address in ["192.0.2.2", "10.200.0.2", "fe80::1", "localhost", ""]:
         assert not _on_this_machine((address, 5555))
     assert not _on_this_machine(None)
+
+
+def test_headers_not_counted_leave_the_patches_the_whole_budget() -> None:
+    """To a receiver on this machine a datagram costs the budget its bundle alone: the patches
+    take what the frames leave of it (the headers of a datagram a frame, 9.6 kbit/s at 30 fps,
+    took a third of the default budget's patches there)."""
+    sent = {}
+    for header_bytes in (DATAGRAM_COST, 0):
+        bundler = Bundler(FPS)
+        bundler.header_bytes = header_bytes
+        for seed in range(12):
+            bundler.add_patch(rem_patch(seed))
+        sent[header_bytes] = run_bundler(bundler, DEFAULT_BUDGET_BPS, 10.0, 20)
+    bundles = sum(len(b) for _, b in sent[0])
+    allowed = DEFAULT_BUDGET_BPS * (10.0 + BUCKET_S) / 8
+    assert 0.9 * allowed < bundles <= allowed
+    counted = sum(len(b) + DATAGRAM_COST for _, b in sent[DATAGRAM_COST])
+    assert counted <= allowed and bundles > sum(len(b) for _, b in sent[DATAGRAM_COST]) + 4_000
 
 
 @pytest.mark.timeout(20)
