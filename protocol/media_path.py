@@ -129,18 +129,20 @@ RECEIVE_BUFFER_BYTES = 1 << 20
 KEYFRAME_REQUEST_BYTE = header_byte(Kind.KEYFRAME_REQUEST)
 
 
-def frames_per_datagram(budget_bps: float, fps: float, lossy: bool = False) -> int:
+def frames_per_datagram(
+    budget_bps: float, fps: float, lossy: bool = False, header_bytes: int = DATAGRAM_COST
+) -> int:
     """Frames whose updates share one datagram: the fewest that keep the datagrams' headers
-    within HEADER_SHARE of the budget (LOSSY_HEADER_SHARE on a ``lossy`` link), at most
-    MAX_FRAMES_PER_DATAGRAM."""
+    (``header_bytes`` each: none to a receiver on this machine) within HEADER_SHARE of the
+    budget (LOSSY_HEADER_SHARE on a ``lossy`` link), at most MAX_FRAMES_PER_DATAGRAM."""
     share = LOSSY_HEADER_SHARE if lossy else HEADER_SHARE
     for k in range(1, MAX_FRAMES_PER_DATAGRAM):
-        if DATAGRAM_COST * 8 * fps / k <= share * budget_bps:
+        if header_bytes * 8 * fps / k <= share * budget_bps:
             return k
     return MAX_FRAMES_PER_DATAGRAM
 
 
-def _on_this_machine(address: tuple[str, int] | None) -> bool:
+def _is_loopback(address: tuple[str, int] | None) -> bool:
     """Whether a peer's UDP address is a loopback one (127.0.0.0/8, ::1)."""
     if address is None:
         return False
@@ -434,7 +436,7 @@ class SenderMediaPath(_Path):
         headers cost no link anything, so frames need not share a datagram (each would wait
         for the next, 33 ms at 30 fps) and the budget need not count them (Bundler)."""
         live = self.live(now)
-        return bool(live) and all(_on_this_machine(p.address) for p in live)
+        return bool(live) and all(_is_loopback(p.address) for p in live)
 
     def send_to(self, identity: bytes, bundle: bytes, now: float) -> bool:
         """Seal ``bundle`` to the receiver ``identity`` alone, if its path is live."""
@@ -559,7 +561,7 @@ class Bundler:
             self.due_bps = rate if self.due_bps == 0 else 0.5 * (self.due_bps + rate)
             self._due_bytes, self._due_since = 0, now
         packing = budget_bps if packing_bps is None else packing_bps
-        self.k = frames_per_datagram(packing, self.fps, self.losing)
+        self.k = frames_per_datagram(packing, self.fps, self.losing, self.header_bytes)
         if self._frames < self.k:
             return []
         self._frames = 0

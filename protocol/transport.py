@@ -610,11 +610,9 @@ class SenderEndpoint(_Endpoint):
         self._bundler.hurry = any(p.controller.wants_reports(now) for p in live)
         if self._refine:
             self._send_refinements(now)
-        local = self._media.on_this_machine(now)
-        self._bundler.header_bytes = 0 if local else DATAGRAM_COST
-        packing = (
-            math.inf if local else self._media.budget_bps(now, self.max_bps, congested_only=True)
-        )
+        # No headers to count on this machine: one frame a datagram there (frames_per_datagram).
+        self._bundler.header_bytes = 0 if self._media.on_this_machine(now) else DATAGRAM_COST
+        packing = self._media.budget_bps(now, self.max_bps, congested_only=True)
         for bundle in self._bundler.end_frame(now, self.budget_bps(), packing):
             self._media.send(bundle, now)
 

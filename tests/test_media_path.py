@@ -39,7 +39,7 @@ from facewire.protocol.media_path import (
     Bundler,
     ReceiverMediaPath,
     SenderMediaPath,
-    _on_this_machine,
+    _is_loopback,
     frames_per_datagram,
 )
 from facewire.protocol.packets import (
@@ -509,15 +509,16 @@ UPDATES = [
 ]
 
 
-def test_a_receiver_on_this_machine_is_told_apart(open_call: Call) -> None:
+def test_a_receiver_is_loopback_is_told_apart(open_call: Call) -> None:
     """On loopback the headers cost no link anything (the transport then sends a datagram a
     frame and counts no headers: below); between two hosts they do."""
     assert open_call.sender.on_this_machine(open_call.t)
+    assert frames_per_datagram(1_000, FPS, lossy=False, header_bytes=0) == 1
     for address in ["127.0.0.1", "127.8.0.1", "::1"]:
-        assert _on_this_machine((address, 5555))
+        assert _is_loopback((address, 5555))
     for address in ["192.0.2.2", "10.200.0.2", "fe80::1", "localhost", ""]:
-        assert not _on_this_machine((address, 5555))
-    assert not _on_this_machine(None)
+        assert not _is_loopback((address, 5555))
+    assert not _is_loopback(None)
 
 
 def test_headers_not_counted_leave_the_patches_the_whole_budget() -> None:
