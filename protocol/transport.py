@@ -857,10 +857,8 @@ class SenderEndpoint(_Endpoint):
         """What a receiver's ReceiverStats say to this end: it left, took the full snapshot,
         has the snapshot (and how fast it came), or had frames come late."""
         if values.get("left"):
-            self._fast.discard(identity)
             self._draft_waits.pop(identity, None)
-            self._draft_by_datagram.discard(identity)
-            self._draft_resent.discard(identity)
+            self._forget_join(identity)
             if self._media is not None:
                 self._media.forget(identity)
         if values.get(REFINED) or values.get("left"):
@@ -1025,9 +1023,14 @@ class SenderEndpoint(_Endpoint):
         while len(self._served_what) > MAX_SNAPSHOT_PEERS:
             gone = next(iter(self._served_what))
             del self._served_what[gone]
-            self._draft_by_datagram.discard(gone)
-            self._draft_resent.discard(gone)
-            self._fast.discard(gone)
+            self._forget_join(gone)
+
+    def _forget_join(self, identity: bytes) -> None:
+        """Drop the marks of how ``identity`` joined: its draft sent by datagram (and again),
+        and "fast" (it left, or was served longest ago)."""
+        self._fast.discard(identity)
+        self._draft_by_datagram.discard(identity)
+        self._draft_resent.discard(identity)
 
     def _refine_if_fast(self, identity: bytes, snapshot_ms: float | None) -> None:
         """The full snapshot at once on the ROUTER connection to a receiver whose draft came
