@@ -532,6 +532,7 @@ def test_headers_not_counted_leave_the_patches_the_whole_budget() -> None:
         for seed in range(12):
             bundler.add_patch(rem_patch(seed))
         sent[header_bytes] = run_bundler(bundler, DEFAULT_BUDGET_BPS, 10.0, 20)
+        assert bundler.k == (1 if header_bytes == 0 else 2)  # no headers: no frame waits
     bundles = sum(len(b) for _, b in sent[0])
     allowed = DEFAULT_BUDGET_BPS * (10.0 + BUCKET_S) / 8
     assert 0.9 * allowed < bundles <= allowed
