@@ -90,6 +90,13 @@ PERSON_MARGIN = 0.01
 INPAINT_WIDTH = 160
 #: The warp's source is the snapshot frame padded by 1/SOURCE_PAD of its longer side.
 SOURCE_PAD = 4
+#: Lines at a frame's edge that differ from the line inside them as no scene does (the black
+#: column of an analogue capture, a dark last row an encoder left) are the camera's border,
+#: not the scene: looked for within the outermost max(BORDER_MIN, side // BORDER_SHARE) lines,
+#: where one differs from the next line in by more than BORDER_RATIO times the typical
+#: difference of neighbouring lines further in, and by BORDER_STEP grey levels more.
+BORDER_MIN, BORDER_SHARE = 4, 64
+BORDER_RATIO, BORDER_STEP = 3.0, 15.0
 
 
 def similarity_3d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -202,19 +209,23 @@ class SurroundWarp:
         # are (their channels are quantised, so they hold for many frames):
         # (camera and body, which, box) -> picture.
         self._by_camera: dict[tuple[bytes, str, tuple[int, int, int, int]], np.ndarray] = {}
+        # The camera's border stays where it is in every frame; what moves is the scene
+        # without it (carried in by a pan, a black column showed as a line across the scene).
+        self._border = frame_border(background)
+        self._clean = self._scene = without_border(background, self._border)
         alpha = np.full((self.height, self.width), 255, np.uint8)
         if person is not None:
             if person.shape != (self.height, self.width):
                 raise ValueError(f"expected ({self.height}, {self.width}) person mask")
             weight, painted = _person_layer(person)
             alpha = np.round(255.0 * weight).astype(np.uint8)
-            self._scene = _paint_out(background, painted)
+            self._scene = _paint_out(self._clean, painted)
         # Padded by the frame's reflection, whose person layer is empty above and beside the
         # frame: what the warp takes from there is scene, never mirrored hair (nor a mirrored
         # shoulder beside a body that shrank). Below the frame a body cut by its bottom edge
         # goes straight on, as bodies do.
         pad = self._pad
-        colour = cv2.copyMakeBorder(background, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+        colour = cv2.copyMakeBorder(self._clean, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
         below = cv2.copyMakeBorder(alpha, 0, pad, 0, 0, cv2.BORDER_REPLICATE)
         layer = cv2.copyMakeBorder(below, pad, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
         # A person layer's colour is premultiplied by its weight: laid over the scene it is
@@ -348,7 +359,7 @@ class SurroundWarp:
         (x0, x1), (y0, y1) = self._box
         x0, x1, y0, y1 = max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1)
         if x1 <= x0 or y1 <= y0:
-            return frame.copy()
+            return self._with_border(frame.copy(), box)
         reach = (x0, y0, x1, y1)
         # The reach is written below: of a large face's it is all, and nothing need be copied.
         out = np.empty_like(frame) if reach == box else frame.copy()
@@ -366,6 +377,24 @@ class SurroundWarp:
             _over(moved4, self._moved("scene", camera, reach, person), out[inside])
         else:
             cv2.cvtColor(moved4, cv2.COLOR_BGRA2BGR, dst=out[inside])
+        return self._with_border(out, box)
+
+    def _with_border(self, out: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+        """``out``, the part ``box`` of a frame, with the camera's border lines put back
+        where the snapshot frame has them."""
+        top, bottom, left, right = self._border
+        x0, y0, x1, y1 = box
+        for rows, cols in (
+            (slice(0, top), slice(None)),
+            (slice(self.height - bottom, self.height), slice(None)),
+            (slice(None), slice(0, left)),
+            (slice(None), slice(self.width - right, self.width)),
+        ):
+            r0, r1, _ = rows.indices(self.height)
+            c0, c1, _ = cols.indices(self.width)
+            r0, r1, c0, c1 = max(r0, y0), min(r1, y1), max(c0, x0), min(c1, x1)
+            if r1 > r0 and c1 > c0:
+                out[r0 - y0 : r1 - y0, c0 - x0 : c1 - x0] = self.background[r0:r1, c0:c1]
         return out
 
     def _moved(
@@ -378,7 +407,7 @@ class SurroundWarp:
         """The part ``box`` of the snapshot frame (``which`` "frame") or of the scene behind
         the person ("scene") moved by ``camera``; with ``body``, the frame is the person
         layer moved by it over the scene moved by ``camera``: not to be written into."""
-        image = self.background if which == "frame" else self._scene
+        image = self._clean if which == "frame" else self._scene
         if camera is None and body is None:
             return image[box[1] : box[3], box[0] : box[2]]
         motion = b"" if camera is None else camera.tobytes()
@@ -413,6 +442,41 @@ def _moved(image: np.ndarray, camera: np.ndarray, box: tuple[int, int, int, int]
     if tilt < 1e-4 and abs(camera[2, 2] - 1.0) < 1e-9:
         return cv2.warpAffine(image, to_box[:2], size, borderMode=border)
     return cv2.warpPerspective(image, to_box, size, borderMode=border)
+
+
+def frame_border(image: np.ndarray) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right): how many lines at each edge of ``image`` (h, w, 3) are a
+    border the camera adds, not the scene (BORDER_MIN and the others): the outermost lines up
+    to the last one in reach that differs from the next line in far more than neighbouring
+    lines further in do. A scene's own strong edge that close to the frame's counts too: it
+    is then those few lines that stand still while the scene moves."""
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
+
+    def depth(lines: np.ndarray) -> int:  # (n, length), the outermost line first
+        reach = max(BORDER_MIN, len(lines) // BORDER_SHARE)
+        if len(lines) < 3 * reach:
+            return 0
+        steps = np.abs(np.diff(lines[: 3 * reach], axis=0)).mean(axis=1)  # line i to i + 1
+        typical = float(np.median(steps[reach:]))
+        jumps = np.flatnonzero(steps[:reach] > max(BORDER_RATIO * typical, typical + BORDER_STEP))
+        return int(jumps[-1]) + 1 if len(jumps) else 0
+
+    return depth(grey), depth(grey[::-1]), depth(grey.T), depth(grey.T[::-1])
+
+
+def without_border(image: np.ndarray, border: tuple[int, int, int, int]) -> np.ndarray:
+    """``image`` with its border lines (:func:`frame_border`) replaced by the first line of
+    the scene inside them (itself if it has none)."""
+    top, bottom, left, right = border
+    if not any(border):
+        return image
+    h, w = image.shape[:2]
+    out = image.copy()
+    out[:top] = out[top]
+    out[h - bottom :] = out[h - bottom - 1]
+    out[:, :left] = out[:, left : left + 1]
+    out[:, w - right :] = out[:, w - right - 1 : w - right]
+    return out
 
 
 def _over(person: np.ndarray, scene: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

@@ -397,3 +397,26 @@ def test_a_head_following_control_carried_onto_a_held_one_does_not_fold_the_warp
     for q in (centre + 1.3 * (o - centre))[[54, 48, 60]]:  # hair above and beside
         x, y = np.round(q + shift).astype(int)
         assert np.allclose([map_x[y, x], map_y[y, x]], q, atol=3.0), q
+
+
+def test_a_capture_s_black_column_stays_at_the_frame_edge_when_the_camera_pans() -> None:
+    # An analogue capture's black first columns and an encoder's dark last row (foreman's):
+    # the camera's, not the scene's. A pan must not carry them in as lines across the scene.
+    image = noise_image()
+    image[:, :2] = (2, 2, 2)
+    image[-1] = image[-1] // 3
+    o = outline()
+    warp = SurroundWarp(image, o, person_scene()[1])
+    assert np.array_equal(warp.warp(o), image)  # still: the frame as it came, border and all
+    pan = np.array([[1.0, 0.0, 12.0], [0.0, 1.0, -6.0], [0.0, 0.0, 1.0]])
+    got = warp.warp(o + [12.0, -6.0], pan)
+    grey = cv2.cvtColor(got, cv2.COLOR_BGR2GRAY).astype(int)
+    # Where the old edge column went (x 12-13) no column is darker than its neighbours.
+    columns = grey[20:-20, 4:40].mean(axis=0)
+    assert columns.min() > np.median(columns) - 25
+    # Where the old bottom row went (6 rows up) no row is.
+    rows = grey[-30:-2, 20:-20].mean(axis=1)
+    assert rows.min() > np.median(rows) - 25
+    # The border itself stays where the camera puts it.
+    assert np.array_equal(got[:, :2], image[:, :2])
+    assert np.array_equal(got[-1], image[-1])
