@@ -246,6 +246,8 @@ class FaceEncoder:
         self.scenes = 0
         self.call_id = 0
         self._face_box: tuple[float, float, float] | None = None
+        #: Where the session's face was when a face jump began a new scene (None: none did).
+        self._jumped_from: tuple[float, float, float] | None = None
         self._new_scene = False  # a cut or another face seen, and no session from it yet
         self._left: tuple[np.ndarray, np.ndarray] | None = None  # the scene before the cut
 
@@ -270,6 +272,7 @@ class FaceEncoder:
             self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
         points = found.points
         self._face_box = None  # the next frame's face is this one's: no jump to look for
+        self._jumped_from = None
         pose = estimate_pose(
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
@@ -424,12 +427,15 @@ class FaceEncoder:
     def start_scene(self, frame: CapturedFrame, fit_now: bool = True) -> Snapshot | None:
         """The snapshot of a new session from ``frame``, which follows on this one (a new
         scene of the call), or None where the frame shows no face (the old session goes on:
-        its receiver keeps the old picture, as no face is tracked; try again on a later frame).
-        ``fit_now``: as :meth:`start`'s.
+        its receiver keeps the old picture, as no face is tracked; try again on a later frame)
+        or, after a face jump and no cut, the old session's face back where it was (the old
+        session goes on, and no new scene is looked for). ``fit_now``: as :meth:`start`'s.
         """
         if isinstance(self.tracker, LandmarkTracker):
             # It would look where the old face was: look over the whole frame.
             self.tracker.reset()
+        if self._left is None and self._jumped_from is not None and self._own_face_back(frame):
+            return None
         old = self.session_id
         self.call_id = self.call_id or old
         self.session_id = secrets.randbelow(UINT32_MAX) + 1
@@ -442,6 +448,20 @@ class FaceEncoder:
         logger.info("another scene at frame %d: session %d of call %d", frame.index,
                     self.session_id, self.call_id)  # fmt: skip
         return snapshot
+
+    def _own_face_back(self, frame: CapturedFrame) -> bool:
+        """Whether ``frame`` shows the session's own face where it was before a face jump
+        began a new scene: the tracker had strayed to another face while it had lost this
+        one (a mother bowing her head, her daughter's face found), and the session goes on.
+        Started from there, the new session's texture was her hair, and the face she raised
+        again was drawn from it."""
+        assert self._jumped_from is not None
+        found = self.tracker.track(frame.image)
+        if found is None or another_face(self._jumped_from, face_box(found.points)):
+            return False
+        self._new_scene, self._jumped_from, self._face_box = False, None, face_box(found.points)
+        logger.info("frame %d: the session's face is back, no new scene", frame.index)
+        return True
 
     def analyse(self, image: np.ndarray) -> tuple[Pose, np.ndarray] | None:
         """Head pose and wire parameters of one frame, or None when no face is tracked (or
@@ -484,11 +504,9 @@ class FaceEncoder:
         if found is None:
             return None
         box = face_box(found.points)
-        jumped = self.scene_cut is not None and self._face_box is not None
-        jumped = jumped and another_face(self._face_box, box)  # type: ignore[arg-type]
-        self._face_box = box
-        if jumped:
-            self._new_scene = True
+        before, self._face_box = self._face_box, box
+        if self.scene_cut is not None and before is not None and another_face(before, box):
+            self._new_scene, self._jumped_from = True, before
             return None
         base = self.session.mesh.vertices
         if isinstance(found, MarkerFit):

@@ -14,7 +14,7 @@ from facewire.cli import main
 from facewire.loopback import Loopback
 from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
-from facewire.sender.scene_cut import SceneCut, another_face
+from facewire.sender.scene_cut import SceneCut, another_face, face_box
 from facewire.sender.session import _SceneStart
 from facewire.sender.snapshot_draft import is_draft
 
@@ -147,6 +147,32 @@ def test_a_black_frame_is_no_new_scene() -> None:
     pictures, scenes = _call(frames, scenes=True)
     assert scenes == 0
     assert _off(pictures[-1], frames[-1]) < 12.0
+
+
+def test_a_face_that_comes_back_after_the_tracker_strayed_is_no_new_scene() -> None:
+    """A second face in view (a child beside her mother) and the first one hidden for longer
+    than the tracker waits for it (a hand over it; the mother bowing her head): the tracker
+    takes the second face, which jumps. When the first face is back where it was, the call
+    goes on in its session: started there, the new session had been made from the moment of
+    the jump (mother-daughter: her hair for a texture, and her face drawn from it)."""
+    second = cv2.resize(cv2.imread(str(FIXTURE))[:300, 80:340], (156, 180))
+    frames = bundled(50)
+    for i, image in enumerate(frames):
+        image[300:480, :156] = second
+        if 20 <= i < 38:
+            cv2.ellipse(image, (330, 230), (110, 150), 0, 0, 360, (90, 120, 160), -1)
+    encoder = FaceEncoder(640, 480, 30.0, scenes=True)
+    with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as both:
+        strayed = False
+        for i, image in enumerate(frames):
+            both.step(CapturedFrame(i, image, i * 33_333))
+            strayed |= encoder._new_scene
+            if i == 40:
+                assert _off(both.picture(), image) < 6.0
+        scenes = both.scenes
+    assert strayed  # the tracker did take the second face
+    assert scenes == 0
+    assert abs(face_box(encoder.points)[0] - 320) < 20  # her face, not the other
 
 
 def test_a_new_scenes_versions_for_a_thin_link_are_made_with_it_off_the_calls_loop() -> None:
