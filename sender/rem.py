@@ -100,6 +100,12 @@ SETTLE_FRAMES = 2
 #: The mouth's inside is looked at only while it is open: its area on screen at least this
 #: fraction of the mouth's width squared.
 MOUTH_OPEN = 0.06
+#: A change the bucket cannot pay an image for, that has waited this many frames (longer than
+#: a blink), goes back to a held image whose difference from it is at most NEARER times that
+#: of the image shown: an eye sent half shut as it began to blink stayed so for 1.5 s on
+#: vtc1nw, where the open eye held before was a 17-byte reference away.
+HELD_AFTER = 8
+NEARER = 0.5
 #: Bytes a RemPatch adds around its image (header byte, region, codec, seq and the three
 #: colour figures).
 PACKET_OVERHEAD = 13
@@ -532,9 +538,12 @@ class RemEncoder:
             return self._refer(seq, name, state.choices()[i], available)
         data, quality = self._coded(name, patch, available / sharing, available)
         if data is None:
-            if score < CHANGE_FRACTION and state.choices()[i] is not state.current:
-                # No image fits, but one held would not count as changed: better than
-                # keeping what it shows (a lid caught reopening stays half shut otherwise).
+            shown = self.change(name, patch, seen, state.current)
+            near = max(CHANGE_FRACTION, NEARER * shown if state.waiting >= HELD_AFTER else 0.0)
+            if score < near and state.choices()[i] is not state.current:
+                # No image fits, but one held would not count as changed, or after a while is
+                # far nearer than what the receiver shows: better than keeping that (a lid
+                # caught reopening stays half shut otherwise).
                 return self._refer(seq, name, state.choices()[i], available)
             return None
         packet = RemPatch(seq, name, "webp", data, *self._stats())

@@ -29,8 +29,10 @@ from facewire.sender.encoder import FaceEncoder
 from facewire.sender.rem import (
     BUDGET_KBPS,
     CHANGE_FRACTION,
+    HELD_AFTER,
     LIMIT_KBPS,
     MOUTH_BUDGET_KBPS,
+    NEARER,
     SAME_FRACTION,
     RemEncoder,
     encode_webp,
@@ -394,6 +396,41 @@ def test_an_eye_that_cannot_pay_for_an_image_goes_back_to_one_held(layout: RemLa
     assert state.current is state.base
     encoder.tokens = 60.0  # far from a held image, nothing goes
     assert encoder._send(10, name, shut // 2, seen, 1, 0.0) is None
+
+
+def test_an_eye_left_half_shut_goes_back_to_a_held_one_far_nearer(layout: RemLayout) -> None:
+    """An eye sent half shut as a blink began, open again and different from every image
+    held (a glance), with no image paid for: after HELD_AFTER frames, not before (a blink's
+    own frames wait for their image), it goes back to the held open eye, which differs
+    from it by far less than the half-shut one shown. On vtc1nw one stayed half shut for
+    1.5 s."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(
+        rng.integers(60, 200, (layout.size, layout.size, 3), dtype=np.uint8), (0, 0), 2
+    )
+    encoder = RemEncoder(layout, texture, first_seq=0, fps=30.0)
+    name = EYES[0]
+    box, state = layout.boxes[name], encoder.states[name]
+    seen = np.ones((box.height, box.width), bool)
+    half_shut = (state.base.content // 2).astype(np.uint8)
+    encoder.tokens = encoder.headroom = 10_000.0
+    assert encoder._send(5, name, half_shut, seen, 1, 0.0).reference is None  # type: ignore[union-attr]
+    glance, score = state.base.content.copy(), 0.0
+    y, x = np.argwhere(box.inside)[len(np.argwhere(box.inside)) // 2]
+    for side in range(2, box.width):
+        glance = state.base.content.copy()
+        glance[y - side // 2 : y + side // 2 + 1, x - side // 2 : x + side // 2 + 1] = 255
+        score = encoder.change(name, glance, seen, state.base)
+        if score > 2 * CHANGE_FRACTION:
+            break
+    assert 2 * CHANGE_FRACTION < score < NEARER * encoder.change(name, glance, seen, state.current)
+    encoder.tokens = 60.0  # a reference, not an image
+    state.waiting = HELD_AFTER - 1
+    assert encoder._send(9, name, glance, seen, 1, 0.0) is None
+    state.waiting = HELD_AFTER
+    packet = encoder._send(10, name, glance, seen, 1, 0.0)
+    assert packet is not None and packet.reference == 0
+    assert state.current is state.base
 
 
 def test_a_blink_shows_as_a_blink(blink_call: Call) -> None:
