@@ -197,7 +197,8 @@ def _call(
         "frames_untracked": encoder.frames_untracked,
         "frames_over_rate": 0 if encoder.rate_cap is None else encoder.rate_cap.held,
         "quantiser_clipped": encoder.values_clipped,
-        # New scenes: the sender's cuts, and seconds from the capture of each one's first
+        # New scenes: the sender's cuts, other faces and better views of the face (its
+        # sessions after the first), and seconds from the capture of each one's first
         # frame to its first picture on the receiver's screen (one host: one clock).
         "scenes": sender.scenes,
         "scene_first_s": [
@@ -297,7 +298,7 @@ def _print_summary(stats: dict[str, Any], args: argparse.Namespace) -> None:
     )
     if stats.get("scenes"):
         firsts = ", ".join(f"{s:.2f}" for s in stats["scene_first_s"])
-        print(f"scenes: {stats['scenes']} cuts, each one's first picture after {firsts} s")
+        print(f"scenes: {stats['scenes']} new, each one's first picture after {firsts} s")
     fit = stats.get("fit_residual") or {}
     if fit.get("sent_px"):
         f, sent = fit["fit_px"], fit["sent_px"]

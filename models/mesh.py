@@ -99,6 +99,24 @@ class FaceMesh:
         a = self.adjacency
         return a.indices[a.indptr[i] : a.indptr[i + 1]]
 
+    @cached_property
+    def _areas(self) -> np.ndarray:
+        v, t = self.vertices, self.triangles
+        return 0.5 * np.linalg.norm(
+            np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1
+        )
+
+    def facing_share(self, points: np.ndarray, min_facing: float = 0.15) -> float:
+        """The share of the face, by this mesh's triangle areas, that ``points`` (n, 3), the
+        face in image space (z away from the camera), turn towards the camera: triangles
+        whose normal is within arccos(``min_facing``) of the view direction. A face looking
+        into the camera shows 0.85-0.9 of itself this way, one in profile about 0.55."""
+        p, t = np.asarray(points, dtype=np.float64), self.triangles
+        normal = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+        length = np.linalg.norm(normal, axis=1)
+        facing = -normal[:, 2] > min_facing * length
+        return float(self._areas[facing].sum() / self._areas.sum())
+
     def vertex_normals(self, vertices: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) unit area-weighted vertex normals (of ``vertices`` if given)."""
         v = self.vertices if vertices is None else vertices

@@ -68,7 +68,7 @@ from facewire.sender.lift import MarkerFaceTracker, MarkerFit
 from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from facewire.sender.refresh import REFRESH_KBPS, RefreshMeter
 from facewire.sender.rem import RemEncoder
-from facewire.sender.scene_cut import SceneCut, another_face, face_box
+from facewire.sender.scene_cut import BetterView, SceneCut, another_face, face_box
 from facewire.sender.synthesis import FaceSynthesis
 from facewire.sender.texture import UvRasteriser
 
@@ -248,6 +248,10 @@ class FaceEncoder:
         self._face_box: tuple[float, float, float] | None = None
         #: Where the session's face was when a face jump began a new scene (None: none did).
         self._jumped_from: tuple[float, float, float] | None = None
+        #: Whether the face is seen far better than the session's snapshot saw it (None:
+        #: no scenes looked for), and whether that began the new scene looked for.
+        self.better_view: BetterView | None = None
+        self._better = False
         self._new_scene = False  # a cut or another face seen, and no session from it yet
         self._left: tuple[np.ndarray, np.ndarray] | None = None  # the scene before the cut
 
@@ -273,6 +277,9 @@ class FaceEncoder:
         points = found.points
         self._face_box = None  # the next frame's face is this one's: no jump to look for
         self._jumped_from = None
+        if self.scene_cut is not None:
+            share = self.canonical.facing_share(points)
+            self.better_view, self._better = BetterView(share, self.fps), False
         pose = estimate_pose(
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
@@ -431,7 +438,7 @@ class FaceEncoder:
         or, after a face jump and no cut, the old session's face back where it was (the old
         session goes on, and no new scene is looked for). ``fit_now``: as :meth:`start`'s.
         """
-        if isinstance(self.tracker, LandmarkTracker):
+        if isinstance(self.tracker, LandmarkTracker) and not self._better:
             # It would look where the old face was: look over the whole frame.
             self.tracker.reset()
         if self._left is None and self._jumped_from is not None and self._own_face_back(frame):
@@ -508,6 +515,12 @@ class FaceEncoder:
         if self.scene_cut is not None and before is not None and another_face(before, box):
             self._new_scene, self._jumped_from = True, before
             return None
+        if self.better_view is not None and self.better_view.seen(
+            self.canonical.facing_share(found.points)
+        ):
+            # This frame is drawn as it is; the next one begins a session of this face.
+            self._new_scene = self._better = True
+            logger.info("the face is seen far better than in its snapshot: a new one")
         base = self.session.mesh.vertices
         if isinstance(found, MarkerFit):
             # Markers: pose and a dense displacement, lifted and spread by the tracker.

@@ -16,6 +16,11 @@ scene changes").
 A face that jumps farther than a face width from one frame to the next, or grows or shrinks
 by half, is another face (a person who sat down as the other left, a camera switched to a
 similar scene): no head moves that much in a frame.
+
+The same face seen far better than in its session's snapshot frame is a new scene too: a
+snapshot taken in profile has no texture for the far side of the face, and the face turned
+to the camera later was drawn from the hole-filling, smeared (mad900, a mother looking at
+her daughter at the call's start; paris). :class:`BetterView` says when.
 """
 
 from __future__ import annotations
@@ -30,6 +35,17 @@ THUMBNAIL_CUT = 16.0
 FACE_JUMP = 1.0
 #: ...and so is one whose width changes by this factor (either way).
 FACE_RESIZE = 1.5
+
+#: The face is seen better than at its snapshot when the share of it turned to the camera
+#: (FaceMesh.facing_share) is at least BETTER_SHARE more than the snapshot frame's, and at
+#: least FRONTAL_SHARE (a face looking into the camera shows 0.82-0.92 of itself, one in
+#: profile 0.53-0.6), ...
+BETTER_SHARE = 0.1
+FRONTAL_SHARE = 0.8
+#: ... for BETTER_FRAMES frames running (a turn that passes through frontal is no view to
+#: keep), from BETTER_AFTER_S seconds after the session began.
+BETTER_FRAMES = 10
+BETTER_AFTER_S = 1.0
 
 #: A frame's colour histogram and grey thumbnail.
 Features = tuple[np.ndarray, np.ndarray]
@@ -97,3 +113,24 @@ def _apart(a: Features, b: Features) -> bool:
     colours = cv2.compareHist(a[0], b[0], cv2.HISTCMP_BHATTACHARYYA)
     layout = float(np.abs(a[1] - b[1]).mean())
     return bool(colours > HISTOGRAM_CUT and layout > THUMBNAIL_CUT)
+
+
+class BetterView:
+    """Whether a session's face is now seen far better than in its snapshot frame.
+
+    share : the snapshot frame's FaceMesh.facing_share; fps : frames a second."""
+
+    def __init__(self, share: float, fps: float) -> None:
+        self.share = share
+        self._wait = round(BETTER_AFTER_S * fps)  # frames before a view counts
+        self._better = 0  # frames running with a better view
+
+    def seen(self, share: float) -> bool:
+        """Take a frame's facing share; True (once) when a new snapshot is due."""
+        self._wait -= 1
+        good = share >= max(self.share + BETTER_SHARE, FRONTAL_SHARE)
+        self._better = self._better + 1 if good else 0
+        if self._wait > 0 or self._better < BETTER_FRAMES:
+            return False
+        self._better, self._wait = 0, 1 << 30  # once: the new session has its own
+        return True

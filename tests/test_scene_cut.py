@@ -9,12 +9,23 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from facewire.cli import main
 from facewire.loopback import Loopback
+from facewire.models.mesh import load_canonical
 from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
-from facewire.sender.scene_cut import SceneCut, another_face, face_box
+from facewire.sender.scene_cut import (
+    BETTER_AFTER_S,
+    BETTER_FRAMES,
+    BETTER_SHARE,
+    FRONTAL_SHARE,
+    BetterView,
+    SceneCut,
+    another_face,
+    face_box,
+)
 from facewire.sender.session import _SceneStart
 from facewire.sender.snapshot_draft import is_draft
 
@@ -173,6 +184,61 @@ def test_a_face_that_comes_back_after_the_tracker_strayed_is_no_new_scene() -> N
     assert strayed  # the tracker did take the second face
     assert scenes == 0
     assert abs(face_box(encoder.points)[0] - 320) < 20  # her face, not the other
+
+
+def test_a_face_in_profile_shows_less_of_itself_than_one_looking_into_the_camera() -> None:
+    mesh = load_canonical()
+    shares = []
+    for yaw in (0.0, 30.0, 60.0):
+        # Model space (y up, z out of the face) to image space (y down, z away).
+        turned = (
+            np.diag([1.0, -1.0, -1.0]) @ Rotation.from_euler("y", yaw, degrees=True).as_matrix()
+        )
+        shares.append(mesh.facing_share(mesh.vertices @ turned.T))
+    assert shares[0] > FRONTAL_SHARE > shares[1] > shares[2] + BETTER_SHARE
+    assert shares[2] < 0.65
+
+
+def test_a_better_view_is_one_held_and_comes_once() -> None:
+    fps = 30.0
+    wait = round(BETTER_AFTER_S * fps)
+    view = BetterView(0.6, fps)
+    # Frontal from the start: not before the session is BETTER_AFTER_S old.
+    assert not any(view.seen(0.87) for _ in range(wait - 1))
+    view = BetterView(0.6, fps)
+    for _ in range(wait):
+        view.seen(0.6)
+    # A turn that passes through frontal is no view to keep.
+    assert not any(view.seen(s) for s in [0.87] * (BETTER_FRAMES - 1) + [0.7])
+    assert [view.seen(0.87) for _ in range(BETTER_FRAMES)][-1]
+    assert not any(view.seen(0.87) for _ in range(3 * BETTER_FRAMES))  # once
+    # A snapshot already near frontal: nothing is much better.
+    view = BetterView(0.84, fps)
+    assert not any(view.seen(0.92) for _ in range(wait + 3 * BETTER_FRAMES))
+
+
+def test_the_face_seen_far_better_than_in_its_snapshot_begins_a_new_session() -> None:
+    """A snapshot taken in profile (here: said to be) has no texture for the face's far side;
+    once the face has looked into the camera for BETTER_FRAMES frames, the call goes on in
+    a session made from that view (mad900: face SSIM 0.527 -> 0.635)."""
+    frames = bundled(90)
+    off = []
+    for profile in (True, False):
+        encoder = FaceEncoder(640, 480, 30.0, scenes=True)
+        with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as both:
+            assert encoder.better_view is not None
+            if profile:
+                encoder.better_view.share = 0.6  # as a face in profile shows
+            pictures = []
+            for i, image in enumerate(frames):
+                both.step(CapturedFrame(i, image, i * 33_333))
+                pictures.append(both.picture())
+            assert both.scenes == (1 if profile else 0)
+            off.append([_off(p, f) for p, f in zip(pictures[60:], frames[60:], strict=True)])
+            # The new session's snapshot saw the face as it is: no other is due.
+            assert encoder.better_view.share > FRONTAL_SHARE
+    # The call goes on in the new session, drawn frame by frame as the old one was.
+    assert np.mean(off[0]) < np.mean(off[1]) + 1.0
 
 
 def test_a_new_scenes_versions_for_a_thin_link_are_made_with_it_off_the_calls_loop() -> None:
