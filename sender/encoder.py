@@ -515,12 +515,6 @@ class FaceEncoder:
         if self.scene_cut is not None and before is not None and another_face(before, box):
             self._new_scene, self._jumped_from = True, before
             return None
-        if self.better_view is not None and self.better_view.seen(
-            self.canonical.facing_share(found.points)
-        ):
-            # This frame is drawn as it is; the next one begins a session of this face.
-            self._new_scene = self._better = True
-            logger.info("the face is seen far better than in its snapshot: a new one")
         base = self.session.mesh.vertices
         if isinstance(found, MarkerFit):
             # Markers: pose and a dense displacement, lifted and spread by the tracker.
@@ -533,6 +527,12 @@ class FaceEncoder:
                 points = self.synthesis.refine(image, points)
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
+        if self.better_view is not None and self.better_view.seen(
+            self.canonical.facing_share(points)
+        ):
+            # This frame is drawn as it is; the next one begins a session of this face.
+            self._new_scene = self._better = True
+            logger.info("the face is seen far better than in its snapshot: a new one")
         return pose, params, points
 
     def projected(self, params: np.ndarray) -> np.ndarray:
