@@ -54,8 +54,10 @@ def _receiver_main(
     try:
         from facewire.receiver.session import run_receiver
 
+        # Frame i of the recording rebuilds input frame i, from the first: where the file's
+        # first face comes late, the first picture stands for the frames before it.
         report = run_receiver(
-            HOST, ports[0], ports[1], output, join_timeout_s=JOIN_TIMEOUT_S, **keys
+            HOST, ports[0], ports[1], output, join_timeout_s=JOIN_TIMEOUT_S, record_from=0, **keys
         )
         results.put(("ok", report.as_dict()))
     except Exception as exc:  # reported as one line by the parent

@@ -222,6 +222,7 @@ def run_receiver(
     notify: Callable[[str], None] = _quiet,
     playout: PlayoutSettings | None = None,
     sound: bool = True,
+    record_from: int | None = None,
     **endpoint_options: Any,
 ) -> ReceiverReport:
     """Join the call at ``host`` and record the rebuilt frames to ``output`` (None: no file).
@@ -236,6 +237,9 @@ def run_receiver(
     sender's frame i: a frame with no packet (nothing changed, or the packet was lost) or one
     that came too late to be shown repeats the previous picture, so the recording stays
     aligned. After a gap the picture holds and a keyframe is requested until one arrives.
+    The recording begins at the first session's snapshot frame (a late joiner's, where it
+    joined), or with ``record_from`` at that frame of the sender's: a receiver there from the
+    start of a file whose first face comes late shows the first picture until then.
 
     A session ends with the sender's Bye, when the sender is silent for PEER_TIMEOUT_S, or when
     it restarts (a new session on the same address). With ``rejoin_timeout_s`` > 0 the
@@ -266,7 +270,8 @@ def run_receiver(
             if output is not None
             else None
         )
-        audio = CallSound(report.shown, snapshot.seq, snapshot.fps, notify) if sound else None
+        first = snapshot.seq if record_from is None else min(record_from, snapshot.seq)
+        audio = CallSound(report.shown, first, snapshot.fps, notify) if sound else None
         try:
             scene: _Ended | None = None  # the scene before, when this session follows on it
             before = report.frames_out
@@ -287,9 +292,11 @@ def run_receiver(
                     notify(f"a new scene from frame {snapshot.seq}")
                 report.keyframe_interval = snapshot.keyframe_interval
                 out = _Output(recorder, sink, snapshot.session_id, report)
+                begins = record_from is not None and scene is None and report.sessions == 1
                 ended = _receive_session(
-                    endpoint, decoder, snapshot, out, report, started, stop, settings, audio, scene
-                )
+                    endpoint, decoder, snapshot, out, report, started, stop, settings, audio, scene,
+                    first if begins else None,
+                )  # fmt: skip
                 report.ended_by = ended.reason
                 frames = report.frames_out - before
                 joined, scene = None, None
@@ -478,16 +485,18 @@ def _receive_session(
     settings: PlayoutSettings,
     audio: CallSound | None = None,
     scene: _Ended | None = None,
+    record_from: int | None = None,
 ) -> _Ended:
     """Rebuild, show and record one session's frames; returns why it ended.
 
     ``scene``: the end of the session this one follows on (the sender cut to a new scene): its
     last picture stays on screen, and in the recording, until this one's first.
+    ``record_from``: the sender's frame the recording begins at (run_receiver's).
     """
     try:
         playout = make_playout(settings, snapshot.fps)
         report.display_fps = settings.display_fps or snapshot.fps
-        player = _Player(Painter(decoder), out, report, snapshot, started, scene)
+        player = _Player(Painter(decoder), out, report, snapshot, started, scene, record_from)
         lateness = LateFrames()
         settle()  # before the frames: no pause of the garbage collector among them
         # Tell the sender we can keep up from now on (building the decoder takes ~0.5 s), and
@@ -598,13 +607,17 @@ class _Player:
         snapshot: Snapshot,
         started: float,
         scene: _Ended | None = None,
+        record_from: int | None = None,
     ) -> None:
         self.painter = painter
         self.out = out
         self.report = report
         self.snapshot = snapshot
         self.started = started
-        self.next_seq = snapshot.seq  # the recording's next frame
+        # The recording's next frame; from ``record_from`` on, every frame before the first
+        # picture shows it, however many (else at most a second's: a late joiner's start).
+        self.next_seq = snapshot.seq if record_from is None else record_from
+        self.fill_from_start = record_from is not None
         self.last: np.ndarray | None = None  # the recording's last picture
         self.stale_from: int | None = None  # first frame of a freeze (packets were lost)
         # A new scene: the scene before stays until its first picture (whose time is noted).
@@ -658,7 +671,7 @@ class _Player:
             # packet show that first picture, so the recording stays aligned; a late
             # joiner's recording starts where it joined.
             early = step.seq - self.next_seq
-            if early <= self.snapshot.fps:
+            if early <= self.snapshot.fps or self.fill_from_start:
                 report.frames_held += _hold(out, picture, early)
         out.write(picture)
         self.last = picture
