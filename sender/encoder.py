@@ -408,10 +408,11 @@ class FaceEncoder:
         )
 
     def scene_changed(self, frame: CapturedFrame) -> bool:
-        """Whether ``frame`` shows another scene than the session's (a cut, or another face:
-        sender/scene_cut.py), and no session has been started from it yet. Look at every
-        frame before encoding it; while True, :meth:`start_scene` starts one (the frame
-        packets until then would draw the face over a scene it does not belong to).
+        """Whether ``frame`` shows another scene than the session's (a cut, another face, or
+        the face far better than its snapshot saw it: sender/scene_cut.py), and no session has
+        been started from it yet. Look at every frame before encoding it; while True,
+        :meth:`start_scene` starts one (the frame packets until then would draw the face over
+        a scene it does not belong to).
         """
         if self.scene_cut is None or self.session is None:
             return False
