@@ -425,6 +425,7 @@ class FaceEncoder:
         if cut and not self._new_scene:
             self._left = self.scene_cut.before
         self._new_scene |= cut
+        self._better &= not cut  # a cut's new face is looked for over the whole frame
         return self._new_scene
 
     def prepare_fit(self) -> None:
