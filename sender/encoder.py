@@ -277,9 +277,6 @@ class FaceEncoder:
         points = found.points
         self._face_box = None  # the next frame's face is this one's: no jump to look for
         self._jumped_from = None
-        if self.scene_cut is not None:
-            share = self.canonical.facing_share(points)
-            self.better_view, self._better = BetterView(share, self.fps), False
         pose = estimate_pose(
             self.canonical.vertices[self._pose_vertices], points[self._pose_vertices]
         )
@@ -298,6 +295,12 @@ class FaceEncoder:
             if side <= least or len(texture_webp) + len(background_webp) <= budget:
                 break
             side //= 2
+        if self.scene_cut is not None:
+            share = self.canonical.facing_share(points)
+            sharp = side / LEAST_TEXELS_PER_FACE_PIXEL if side < MAX_TEXTURE_SIZE else np.inf
+            width = float(np.ptp(points[:, 0]))
+            self.better_view = BetterView(share, self.fps, width, sharp)
+            self._better = False
         meta: dict[str, str | int | float] = {
             "tracker": "markers"
             if isinstance(self.tracker, MarkerFaceTracker)
@@ -530,7 +533,7 @@ class FaceEncoder:
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
         if self.better_view is not None and self.better_view.seen(
-            self.canonical.facing_share(points)
+            self.canonical.facing_share(points), float(np.ptp(points[:, 0]))
         ):
             # This frame is drawn as it is; the next one begins a session of this face.
             self._new_scene = self._better = True

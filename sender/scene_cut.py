@@ -46,6 +46,9 @@ FRONTAL_SHARE = 0.8
 #: keep), from BETTER_AFTER_S seconds after the session began.
 BETTER_FRAMES = 10
 BETTER_AFTER_S = 1.0
+#: The face is seen better, too, when it is this many times as wide as in the snapshot frame
+#: and wider than the snapshot's texture is sharp for (BetterView).
+GROWN = 1.5
 
 #: A frame's colour histogram and grey thumbnail.
 Features = tuple[np.ndarray, np.ndarray]
@@ -116,19 +119,29 @@ def _apart(a: Features, b: Features) -> bool:
 
 
 class BetterView:
-    """Whether a session's face is now seen far better than in its snapshot frame.
+    """Whether a session's face is now seen far better than in its snapshot frame: far more
+    of it, or far larger than its texture is sharp for (a person who leans in).
 
-    share : the snapshot frame's FaceMesh.facing_share; fps : frames a second."""
+    share : the snapshot frame's FaceMesh.facing_share; fps : frames a second; width : the
+    snapshot frame's face width, pixels; sharp_up_to : the face's width beyond which the
+    snapshot's texture holds less than the camera sees (infinite: the largest texture there
+    is). A face past it counts once it is also GROWN times the snapshot's: a texture sized
+    at the least a face needs is past it whenever the head comes a little closer."""
 
-    def __init__(self, share: float, fps: float) -> None:
+    def __init__(
+        self, share: float, fps: float, width: float = 0.0, sharp_up_to: float = float("inf")
+    ) -> None:
         self.share = share
+        self.sharp_up_to = max(sharp_up_to, GROWN * width)
         self._wait = round(BETTER_AFTER_S * fps)  # frames before a view counts
         self._better = 0  # frames running with a better view
 
-    def seen(self, share: float) -> bool:
-        """Take a frame's facing share; True (once) when a new snapshot is due."""
+    def seen(self, share: float, width: float = 0.0) -> bool:
+        """Take a frame's facing share and face width (pixels); True (once) when a new
+        snapshot is due."""
         self._wait -= 1
-        good = share >= max(self.share + BETTER_SHARE, FRONTAL_SHARE)
+        more = share >= max(self.share + BETTER_SHARE, FRONTAL_SHARE)
+        good = more or width > self.sharp_up_to
         self._better = self._better + 1 if good else 0
         if self._wait > 0 or self._better < BETTER_FRAMES:
             return False

@@ -217,6 +217,24 @@ def test_a_better_view_is_one_held_and_comes_once() -> None:
     assert not any(view.seen(0.92) for _ in range(wait + 3 * BETTER_FRAMES))
 
 
+def test_a_face_grown_past_what_its_texture_is_sharp_for_is_a_better_view() -> None:
+    """A person who leans in: the face wider than the snapshot's texture holds (at least
+    1.25 texels a pixel) for BETTER_FRAMES frames. vtc1nw leaning in from half its size: face
+    SSIM over the last 2 s 0.701 -> 0.822 with the new session."""
+    fps = 30.0
+    wait = round(BETTER_AFTER_S * fps)
+    view = BetterView(0.86, fps, 54.0, sharp_up_to=102.4)  # a 128-texel texture
+    assert not any(view.seen(0.86, 100.0) for _ in range(wait + 2 * BETTER_FRAMES))
+    assert [view.seen(0.86, 110.0) for _ in range(BETTER_FRAMES)][-1]
+    # A texture sized at the least the face needs: past it as the head comes a little closer,
+    # and no better for that.
+    view = BetterView(0.86, fps, 200.0, sharp_up_to=204.8)
+    assert not any(view.seen(0.86, 223.0) for _ in range(wait + 2 * BETTER_FRAMES))
+    # The largest texture there is: no size is past it.
+    view = BetterView(0.86, fps)
+    assert not any(view.seen(0.86, 2000.0) for _ in range(wait + 2 * BETTER_FRAMES))
+
+
 def test_the_face_seen_far_better_than_in_its_snapshot_begins_a_new_session() -> None:
     """A snapshot taken in profile (here: said to be) has no texture for the face's far side;
     once the face has looked into the camera for BETTER_FRAMES frames, the call goes on in
