@@ -2,13 +2,15 @@
 
 Usage:
   PYOPENGL_PLATFORM=egl python benchmarks/bench_body.py --input CLIP [--input CLIP ...]
-      [--motion lean|shift|none] [--frames N] [--no-body] [--no-refresh] [--pictures DIR]
+      [--motion lean|closer|shift|none] [--frames N] [--no-body] [--no-refresh]
+      [--pictures DIR]
 
 Each clip's person (the segmentation of models/person.py, frame by frame) is put back over
 the scene with the person painted out (tests/body_clip.py): ``lean`` scales the person from
 1.3 to 1 about the first frame's face over 2 s (eased) and then holds, a person leaning back
-from the camera; ``shift`` moves them sideways by 15 % of the frame's width over 2 s; ``none``
-leaves the clip as it is. Both ends run in one process (facewire/loopback.py: real codecs,
+from the camera; ``closer`` from 0.5 to 1, a person leaning in (from where the snapshot's
+texture is sharp for a face half as wide); ``shift`` moves them sideways by 15 % of the
+frame's width over 2 s; ``none`` leaves the clip as it is. Both ends run in one process (facewire/loopback.py: real codecs,
 packets as bytes, no sockets), every frame is rebuilt and compared with its input: the
 silhouette (segmentation of the input against that of the output, IoU; the lowest over the
 frames and where), face and head SSIM (facewire/quality.py, regions from the input's own
@@ -67,6 +69,8 @@ def moved(frames: list[np.ndarray], motion: str, fps: float) -> list[np.ndarray]
     moving = round(MOVING_S * fps)
     if motion == "lean":
         return leaning_clip(frames, centre, (1.3, 1.0), moving=moving)  # type: ignore[arg-type]
+    if motion == "closer":
+        return leaning_clip(frames, centre, (0.5, 1.0), moving=moving)  # type: ignore[arg-type]
     if motion == "shift":
         width = frames[0].shape[1]
         shift = ((0.0, 0.0), (0.15 * width, 0.0))
@@ -117,7 +121,7 @@ def run(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--input", action="append", required=True)
-    parser.add_argument("--motion", choices=("lean", "shift", "none"), default="lean")
+    parser.add_argument("--motion", choices=("lean", "closer", "shift", "none"), default="lean")
     parser.add_argument("--frames", type=int, default=90)
     parser.add_argument("--no-body", action="store_true")
     parser.add_argument("--no-refresh", action="store_true")
