@@ -75,7 +75,6 @@ class _Recorder(RoomSender):
 def record(clip: Path | None, size: tuple[int, int], frames: int, out: Path) -> dict[str, Any]:
     """Encode ``frames`` frames of ``clip`` (None: the bundled clip) scaled to ``size`` once,
     into ``out`` (a pickle: fps and the entries); capture times are the clip's own."""
-    from facewire.call import FACE_SEARCH_FRAMES
     from facewire.sender.capture import VideoSource, demo_clip_path
     from facewire.sender.encoder import FaceEncoder
     from facewire.sender.session import capped_size, run_sender, scaled, start_session
@@ -94,7 +93,7 @@ def record(clip: Path | None, size: tuple[int, int], frames: int, out: Path) -> 
     try:
         source = scaled(stamped(), size)
         encoder = FaceEncoder(*size, fps)
-        snapshot, buffered = start_session(encoder, source, FACE_SEARCH_FRAMES, str(clip))
+        snapshot, buffered = start_session(encoder, source, fps, str(clip))
         recorder = _Recorder(fps, current)
         recorder.set_snapshot(snapshot)
 

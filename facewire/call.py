@@ -42,7 +42,6 @@ from facewire.watch import Watchers, add_watch_arguments, check_watch_arguments,
 
 logger = logging.getLogger(__name__)
 
-FACE_SEARCH_FRAMES = 60  # frames read while looking for a face to build the session from
 #: Larger inputs are scaled down to fit before tracking: the receiver renders at the sender's
 #: size, and above this llvmpipe cannot render 30 fps (BENCHMARKS.md, "Renderer").
 MAX_SIZE = (1280, 720)
@@ -390,7 +389,7 @@ def send(
             *source.size, source.video.fps, geometry_kbps=args.geometry_kbps or None
         )
         frames = source.frames()
-        snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.name)
+        snapshot, buffered = start_session(encoder, frames, source.video.fps, source.name)
         width, height = source.size
         endpoint = SenderEndpoint(
             address.host,
@@ -423,7 +422,7 @@ def send(
                     f"no receiver joined within {timeout:g} s {address.describe(offset)} ({hint})"
                 )
             tell("a receiver joined; sending")
-            source.video.resync(len(buffered))
+            source.video.resync(buffered[-1].index + 1)
             presence = _Presence(active=1)
             rest = _paused_while_alone(
                 frames, source, endpoint, presence, stop, tell, wait_when_alone

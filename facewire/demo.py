@@ -14,7 +14,7 @@ import logging
 import multiprocessing as mp
 import queue
 import tempfile
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -34,14 +34,20 @@ from facewire.sender.encoder import FaceEncoder
 from facewire.sender.lift import MarkerFaceTracker
 from facewire.sender.markers import NO_MARKERS
 from facewire.sender.rate_cap import GEOMETRY_KBPS
-from facewire.sender.session import capped_size, run_sender, scaled, wait_until_ready
+from facewire.sender.session import (
+    FACE_SEARCH_KEEP,
+    capped_size,
+    face_search,
+    run_sender,
+    scaled,
+    wait_until_ready,
+)
 from facewire.sender.snapshot_draft import draft, sharper
 from facewire.sheet import write_contact_sheet
 
 logger = logging.getLogger(__name__)
 
 HOST = "127.0.0.1"
-FACE_SEARCH_FRAMES = 60  # frames read while looking for a face to build the session from
 JOIN_TIMEOUT_S = 60.0
 RECEIVER_TIMEOUT_S = 120.0
 
@@ -113,20 +119,23 @@ def _call(
         geometry_kbps=getattr(args, "geometry_kbps", GEOMETRY_KBPS) or None,
     )
     frames = scaled(video.frames(limit=args.frames), size)
-    buffered = []
-    snapshot = None
-    for frame in itertools.islice(frames, FACE_SEARCH_FRAMES):
+    # The frames before the face are not sent (but the last FACE_SEARCH_KEEP): the snapshot
+    # holds from frame 0, so the recording shows the first picture for them.
+    buffered: deque[CapturedFrame] = deque(maxlen=FACE_SEARCH_KEEP)
+    snapshot, read = None, 0
+    for frame in itertools.islice(frames, face_search(video.fps)):
         buffered.append(frame)
+        read += 1
         snapshot = encoder.start(frame, seq=0)
         if snapshot is not None:
             break
     if snapshot is None:
         if tracker is not None and tracker.state == NO_MARKERS:
             raise CaptureError(
-                f"a face but no markers on it in the first {len(buffered)} frames of "
+                f"a face but no markers on it in the first {read} frames of "
                 f"{video.name} (--tracker markers: see the README for where they go)"
             )
-        raise CaptureError(f"no face found in the first {len(buffered)} frames of {video.name}")
+        raise CaptureError(f"no face found in the first {read} frames of {video.name}")
 
     ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
     results = ctx.Queue()
@@ -152,8 +161,8 @@ def _call(
         try:
             _wait_for_join(endpoint, proc, results)
             # Frames read before the call began count as captured now; pacing restarts.
-            buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
-            video.resync(len(buffered))
+            video.resync(buffered[-1].index + 1)
+            buffered = deque(dataclasses.replace(f, capture_us=now_us()) for f in buffered)
             keep = Mp4Recorder(sent, *size, video.fps) if sent else None  # as sent
             sound = sound_as_asked(
                 args,

@@ -105,7 +105,7 @@ class _SendingSide:
             self.done.set()
 
     def _send(self) -> None:
-        from facewire.call import FACE_SEARCH_FRAMES, _Source, sound_as_asked
+        from facewire.call import _Source, sound_as_asked
         from facewire.room_sender import RoomSender
         from facewire.sender.audio import with_sound
         from facewire.sender.encoder import FaceEncoder
@@ -116,7 +116,7 @@ class _SendingSide:
         try:
             encoder = FaceEncoder(*source.size, source.video.fps)
             frames = source.frames()
-            snapshot, buffered = start_session(encoder, frames, FACE_SEARCH_FRAMES, source.name)
+            snapshot, buffered = start_session(encoder, frames, source.video.fps, source.name)
             max_bps = DEFAULT_BUDGET_BPS if args.max_kbps is None else args.max_kbps * 1000
             endpoint = RoomSender(
                 self.link, self.key, args.name, self.sealer, source.video.fps, max_bps
@@ -128,7 +128,7 @@ class _SendingSide:
                 f"sending {source.name} ({width}x{height} at {source.video.fps:g} fps) to room "
                 f"{args.room} as {args.name}"
             )
-            source.video.resync(len(buffered))
+            source.video.resync(buffered[-1].index + 1)
             where = source.path if source.path is not None else args.camera
             sound = sound_as_asked(
                 args, where, source.video.is_camera, True, endpoint.publish, self.tell, max_bps

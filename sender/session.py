@@ -7,6 +7,7 @@ import itertools
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -33,6 +34,13 @@ from facewire.sender.rem import MOUTH_BUDGET_KBPS
 from facewire.sender.snapshot_draft import draft, sharper
 
 logger = logging.getLogger(__name__)
+
+#: Seconds of input looked through for a first face (a title card, an empty chair before it:
+#: a file's first face 59 frames in was a call, one 61 frames in an error), of which the last
+#: FACE_SEARCH_KEEP frames are kept to be sent (a 1280x720 frame is 2.8 MB). A recording
+#: that begins at the input's first frame shows the first picture for those before.
+FACE_SEARCH_S = 10.0
+FACE_SEARCH_KEEP = 60
 
 FramePacket = KeyFrame | DeltaFrame
 #: How often the pictures' budget follows the link's (frames).
@@ -235,21 +243,29 @@ def wait_until_ready(
     return False
 
 
-def start_session(
-    encoder: FaceEncoder, frames: Iterator[CapturedFrame], search: int, name: str
-) -> tuple[Snapshot, list[CapturedFrame]]:
-    """Start ``encoder`` on the first frame that shows a face among the next ``search``.
+def face_search(fps: float) -> int:
+    """Frames of input at ``fps`` looked through for a first face (FACE_SEARCH_S)."""
+    return max(1, round(FACE_SEARCH_S * fps))
 
-    Returns the snapshot and the frames read so far (the face frame last): they still have to
-    be sent. Raises CaptureError (one line, naming the source ``name``) when none shows a face.
+
+def start_session(
+    encoder: FaceEncoder, frames: Iterator[CapturedFrame], fps: float, name: str
+) -> tuple[Snapshot, list[CapturedFrame]]:
+    """Start ``encoder`` on the first frame that shows a face within FACE_SEARCH_S of input.
+
+    Returns the snapshot and the last FACE_SEARCH_KEEP frames read (the face frame last): they
+    still have to be sent. Raises CaptureError (one line, naming the source ``name``) when
+    none shows a face.
     """
-    buffered: list[CapturedFrame] = []
-    for frame in itertools.islice(frames, search):
-        buffered.append(frame)
-        snapshot = encoder.start(frame, seq=buffered[0].index)
+    kept: deque[CapturedFrame] = deque(maxlen=FACE_SEARCH_KEEP)
+    read = 0
+    for frame in itertools.islice(frames, face_search(fps)):
+        kept.append(frame)
+        read += 1
+        snapshot = encoder.start(frame, seq=kept[0].index)
         if snapshot is not None:
-            return snapshot, buffered
-    raise CaptureError(f"no face found in the first {len(buffered)} frames of {name}")
+            return snapshot, list(kept)
+    raise CaptureError(f"no face found in the first {read} frames of {name}")
 
 
 def restamped(frames: list[CapturedFrame]) -> list[CapturedFrame]:
