@@ -298,8 +298,7 @@ class FaceEncoder:
         if self.scene_cut is not None:
             share = self.canonical.facing_share(points)
             sharp = side / LEAST_TEXELS_PER_FACE_PIXEL if side < MAX_TEXTURE_SIZE else np.inf
-            width = float(np.ptp(points[:, 0]))
-            self.better_view = BetterView(share, self.fps, width, sharp)
+            self.better_view = BetterView(share, face_box(points), self.fps, sharp)
             self._better = False
         meta: dict[str, str | int | float] = {
             "tracker": "markers"
@@ -533,7 +532,7 @@ class FaceEncoder:
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
         if self.better_view is not None and self.better_view.seen(
-            self.canonical.facing_share(points), float(np.ptp(points[:, 0]))
+            self.canonical.facing_share(points), face_box(points)
         ):
             # This frame is drawn as it is; the next one begins a session of this face.
             self._new_scene = self._better = True

@@ -47,8 +47,10 @@ FRONTAL_SHARE = 0.8
 BETTER_FRAMES = 10
 BETTER_AFTER_S = 1.0
 #: The face is seen better, too, when it is this many times as wide as in the snapshot frame
-#: and wider than the snapshot's texture is sharp for (BetterView).
+#: and wider than the snapshot's texture is sharp for, or this many of its snapshot's widths
+#: from where the snapshot saw it (BetterView; talking heads move at most 0.6 of one).
 GROWN = 1.5
+MOVED = 1.0
 
 #: A frame's colour histogram and grey thumbnail.
 Features = tuple[np.ndarray, np.ndarray]
@@ -120,28 +122,35 @@ def _apart(a: Features, b: Features) -> bool:
 
 class BetterView:
     """Whether a session's face is now seen far better than in its snapshot frame: far more
-    of it, or far larger than its texture is sharp for (a person who leans in).
+    of it, far larger than its texture is sharp for (a person who leans in), or far from where
+    the snapshot saw it (a person who walked: the snapshot's body stays where it was, and the
+    head's surroundings tear as the warp drags them).
 
-    share : the snapshot frame's FaceMesh.facing_share; fps : frames a second; width : the
-    snapshot frame's face width, pixels; sharp_up_to : the face's width beyond which the
-    snapshot's texture holds less than the camera sees (infinite: the largest texture there
-    is). A face past it counts once it is also GROWN times the snapshot's: a texture sized
-    at the least a face needs is past it whenever the head comes a little closer."""
+    share : the snapshot frame's FaceMesh.facing_share; box : its face_box; fps : frames a
+    second; sharp_up_to : the face's width beyond which the snapshot's texture holds less than
+    the camera sees (infinite: the largest texture there is). A face past it counts once it is
+    also GROWN times the snapshot's: a texture sized at the least a face needs is past it
+    whenever the head comes a little closer."""
 
     def __init__(
-        self, share: float, fps: float, width: float = 0.0, sharp_up_to: float = float("inf")
+        self,
+        share: float,
+        box: tuple[float, float, float],
+        fps: float,
+        sharp_up_to: float = float("inf"),
     ) -> None:
-        self.share = share
-        self.sharp_up_to = max(sharp_up_to, GROWN * width)
+        self.share, self.box = share, box
+        self.sharp_up_to = max(sharp_up_to, GROWN * box[2])
         self._wait = round(BETTER_AFTER_S * fps)  # frames before a view counts
         self._better = 0  # frames running with a better view
 
-    def seen(self, share: float, width: float = 0.0) -> bool:
-        """Take a frame's facing share and face width (pixels); True (once) when a new
-        snapshot is due."""
+    def seen(self, share: float, box: tuple[float, float, float]) -> bool:
+        """Take a frame's facing share and face box; True (once) when a new snapshot is due."""
         self._wait -= 1
         more = share >= max(self.share + BETTER_SHARE, FRONTAL_SHARE)
-        good = more or width > self.sharp_up_to
+        (x0, y0, w0), (x, y, w) = self.box, box
+        moved = np.hypot(x - x0, y - y0) > MOVED * w0
+        good = more or w > self.sharp_up_to or moved
         self._better = self._better + 1 if good else 0
         if self._wait > 0 or self._better < BETTER_FRAMES:
             return False

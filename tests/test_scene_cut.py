@@ -202,19 +202,20 @@ def test_a_face_in_profile_shows_less_of_itself_than_one_looking_into_the_camera
 def test_a_better_view_is_one_held_and_comes_once() -> None:
     fps = 30.0
     wait = round(BETTER_AFTER_S * fps)
-    view = BetterView(0.6, fps)
+    box = (100.0, 100.0, 60.0)
+    view = BetterView(0.6, box, fps)
     # Frontal from the start: not before the session is BETTER_AFTER_S old.
-    assert not any(view.seen(0.87) for _ in range(wait - 1))
-    view = BetterView(0.6, fps)
+    assert not any(view.seen(0.87, box) for _ in range(wait - 1))
+    view = BetterView(0.6, box, fps)
     for _ in range(wait):
-        view.seen(0.6)
+        view.seen(0.6, box)
     # A turn that passes through frontal is no view to keep.
-    assert not any(view.seen(s) for s in [0.87] * (BETTER_FRAMES - 1) + [0.7])
-    assert [view.seen(0.87) for _ in range(BETTER_FRAMES)][-1]
-    assert not any(view.seen(0.87) for _ in range(3 * BETTER_FRAMES))  # once
+    assert not any(view.seen(s, box) for s in [0.87] * (BETTER_FRAMES - 1) + [0.7])
+    assert [view.seen(0.87, box) for _ in range(BETTER_FRAMES)][-1]
+    assert not any(view.seen(0.87, box) for _ in range(3 * BETTER_FRAMES))  # once
     # A snapshot already near frontal: nothing is much better.
-    view = BetterView(0.84, fps)
-    assert not any(view.seen(0.92) for _ in range(wait + 3 * BETTER_FRAMES))
+    view = BetterView(0.84, box, fps)
+    assert not any(view.seen(0.92, box) for _ in range(wait + 3 * BETTER_FRAMES))
 
 
 def test_a_face_grown_past_what_its_texture_is_sharp_for_is_a_better_view() -> None:
@@ -223,16 +224,26 @@ def test_a_face_grown_past_what_its_texture_is_sharp_for_is_a_better_view() -> N
     SSIM 0.708 -> 0.794 with the new session (bench_body.py --motion closer)."""
     fps = 30.0
     wait = round(BETTER_AFTER_S * fps)
-    view = BetterView(0.86, fps, 54.0, sharp_up_to=102.4)  # a 128-texel texture
-    assert not any(view.seen(0.86, 100.0) for _ in range(wait + 2 * BETTER_FRAMES))
-    assert [view.seen(0.86, 110.0) for _ in range(BETTER_FRAMES)][-1]
+    view = BetterView(0.86, (100.0, 100.0, 54.0), fps, sharp_up_to=102.4)  # 128 texels
+    assert not any(view.seen(0.86, (100.0, 100.0, 100.0)) for _ in range(wait + BETTER_FRAMES))
+    assert [view.seen(0.86, (100.0, 100.0, 110.0)) for _ in range(BETTER_FRAMES)][-1]
     # A texture sized at the least the face needs: past it as the head comes a little closer,
     # and no better for that.
-    view = BetterView(0.86, fps, 200.0, sharp_up_to=204.8)
-    assert not any(view.seen(0.86, 223.0) for _ in range(wait + 2 * BETTER_FRAMES))
+    view = BetterView(0.86, (100.0, 100.0, 200.0), fps, sharp_up_to=204.8)
+    assert not any(view.seen(0.86, (100.0, 100.0, 223.0)) for _ in range(wait + BETTER_FRAMES))
     # The largest texture there is: no size is past it.
-    view = BetterView(0.86, fps)
-    assert not any(view.seen(0.86, 2000.0) for _ in range(wait + 2 * BETTER_FRAMES))
+    view = BetterView(0.86, (100.0, 100.0, 54.0), fps)
+    assert not any(view.seen(0.86, (100.0, 100.0, 2000.0)) for _ in range(wait + BETTER_FRAMES))
+
+
+def test_a_face_far_from_where_its_snapshot_saw_it_is_a_better_view() -> None:
+    """A person who walked across the room (bowing): a face width from the snapshot's place,
+    held. Talking heads move at most 0.6 of one."""
+    fps = 30.0
+    wait = round(BETTER_AFTER_S * fps)
+    view = BetterView(0.86, (100.0, 100.0, 60.0), fps)
+    assert not any(view.seen(0.86, (136.0, 100.0, 60.0)) for _ in range(wait + BETTER_FRAMES))
+    assert [view.seen(0.86, (100.0, 165.0, 60.0)) for _ in range(BETTER_FRAMES)][-1]
 
 
 def test_the_face_seen_far_better_than_in_its_snapshot_begins_a_new_session() -> None:
