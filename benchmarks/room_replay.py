@@ -92,7 +92,7 @@ def record(clip: Path | None, size: tuple[int, int], frames: int, out: Path) -> 
 
     try:
         source = scaled(stamped(), size)
-        encoder = FaceEncoder(*size, fps)
+        encoder = FaceEncoder(*size, fps, scenes=False)  # as facewire/room.py's
         snapshot, buffered = start_session(encoder, source, fps, str(clip))
         recorder = _Recorder(fps, current)
         recorder.set_snapshot(snapshot)
