@@ -11,14 +11,14 @@ the scene with the person painted out (tests/body_clip.py): ``lean`` scales the 
 from the camera; ``closer`` from 0.5 to 1, a person leaning in (from where the snapshot's
 texture is sharp for a face half as wide); ``shift`` moves them sideways by 15 % of the
 frame's width over 2 s; ``none`` leaves the clip as it is. Both ends run in one process
-(facewire/loopback.py: real codecs, packets as bytes, no sockets), every frame is rebuilt and
-compared with its input: the silhouette (segmentation of the input against that of the
-output, IoU; the lowest over the frames and where), face and head SSIM (facewire/quality.py, regions from the input's own
-landmarks), and what the ``body`` channel cost (kbit/s of the frame bodies' coded bits).
-``--no-body`` runs the sender without following the body (its values stay zero: the body
-moves with the scene, as before the channel); ``--no-refresh`` without the refreshes of what
-the model misses (sender/refresh.py), to see the body alone. ``--pictures DIR`` writes
-input | output every 15 frames.
+(facewire/loopback.py: real codecs, packets as bytes, no sockets), every frame is rebuilt
+and compared with its input: the silhouette (segmentation of the input against that of the
+output, IoU; the lowest over the frames and where), face and head SSIM (facewire/quality.py,
+regions from the input's own landmarks), and what the ``body`` channel cost (kbit/s of the
+frame bodies' coded bits). ``--no-body`` runs the sender without following the body (its
+values stay zero: the body moves with the scene, as before the channel); ``--no-refresh``
+without the refreshes of what the model misses (sender/refresh.py), to see the body alone.
+``--pictures DIR`` writes input | output every 15 frames.
 """
 
 from __future__ import annotations
