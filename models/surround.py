@@ -383,15 +383,14 @@ class SurroundWarp:
         """``out``, the part ``box`` of a frame, with the camera's border lines put back
         where the snapshot frame has them."""
         top, bottom, left, right = self._border
+        h, w = self.height, self.width
         x0, y0, x1, y1 = box
-        for rows, cols in (
-            (slice(0, top), slice(None)),
-            (slice(self.height - bottom, self.height), slice(None)),
-            (slice(None), slice(0, left)),
-            (slice(None), slice(self.width - right, self.width)),
+        for r0, r1, c0, c1 in (
+            (0, top, 0, w),
+            (h - bottom, h, 0, w),
+            (0, h, 0, left),
+            (0, h, w - right, w),
         ):
-            r0, r1, _ = rows.indices(self.height)
-            c0, c1, _ = cols.indices(self.width)
             r0, r1, c0, c1 = max(r0, y0), min(r1, y1), max(c0, x0), min(c1, x1)
             if r1 > r0 and c1 > c0:
                 out[r0 - y0 : r1 - y0, c0 - x0 : c1 - x0] = self.background[r0:r1, c0:c1]
