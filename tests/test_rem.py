@@ -363,11 +363,9 @@ def blink_call(bundled: list[CapturedFrame]) -> Iterator[Call]:
     yield in_process_call(bundled, keep={0, 100, 140})
 
 
-def test_an_eye_that_cannot_pay_for_an_image_goes_back_to_one_held(layout: RemLayout) -> None:
-    """An eye left half shut by a blink's patch goes back to the snapshot's image when no
-    image fits the bucket but that one would not count as changed (under CHANGE_FRACTION),
-    though it differs by more than the SAME_FRACTION that a reference needs otherwise. On
-    the bundled clip the lid stayed half shut for 37 frames without that."""
+def _eye_sent_half_shut(layout: RemLayout) -> tuple[RemEncoder, str, np.ndarray]:
+    """An encoder over a smooth random texture whose first eye was just sent darkened (a lid
+    half shut) at frame 5, as an image: (encoder, the eye's name, its texels all seen)."""
     rng = np.random.default_rng(0)
     texture = cv2.GaussianBlur(
         rng.integers(60, 200, (layout.size, layout.size, 3), dtype=np.uint8), (0, 0), 2
@@ -376,10 +374,21 @@ def test_an_eye_that_cannot_pay_for_an_image_goes_back_to_one_held(layout: RemLa
     name = EYES[0]
     box, state = layout.boxes[name], encoder.states[name]
     seen = np.ones((box.height, box.width), bool)
-    shut = (state.base.content // 2).astype(np.uint8)
+    half_shut = (state.base.content // 2).astype(np.uint8)
     encoder.tokens = encoder.headroom = 10_000.0
-    assert encoder._send(5, name, shut, seen, 1, 0.0).reference is None  # type: ignore[union-attr]
+    assert encoder._send(5, name, half_shut, seen, 1, 0.0).reference is None  # type: ignore[union-attr]
     assert state.current.key == 5
+    return encoder, name, seen
+
+
+def test_an_eye_that_cannot_pay_for_an_image_goes_back_to_one_held(layout: RemLayout) -> None:
+    """An eye left half shut by a blink's patch goes back to the snapshot's image when no
+    image fits the bucket but that one would not count as changed (under CHANGE_FRACTION),
+    though it differs by more than the SAME_FRACTION that a reference needs otherwise. On
+    the bundled clip the lid stayed half shut for 37 frames without that."""
+    encoder, name, seen = _eye_sent_half_shut(layout)
+    box, state = layout.boxes[name], encoder.states[name]
+    shut = state.current.content
     # The eye open again, but for a patch of brighter texels: between the two thresholds.
     reopened, score = state.base.content.copy(), 0.0
     for side in range(2, box.width):
@@ -404,17 +413,8 @@ def test_an_eye_left_half_shut_goes_back_to_a_held_one_far_nearer(layout: RemLay
     own frames wait for their image), it goes back to the held open eye, which differs
     from it by far less than the half-shut one shown. On vtc1nw one stayed half shut for
     1.5 s."""
-    rng = np.random.default_rng(0)
-    texture = cv2.GaussianBlur(
-        rng.integers(60, 200, (layout.size, layout.size, 3), dtype=np.uint8), (0, 0), 2
-    )
-    encoder = RemEncoder(layout, texture, first_seq=0, fps=30.0)
-    name = EYES[0]
+    encoder, name, seen = _eye_sent_half_shut(layout)
     box, state = layout.boxes[name], encoder.states[name]
-    seen = np.ones((box.height, box.width), bool)
-    half_shut = (state.base.content // 2).astype(np.uint8)
-    encoder.tokens = encoder.headroom = 10_000.0
-    assert encoder._send(5, name, half_shut, seen, 1, 0.0).reference is None  # type: ignore[union-attr]
     glance, score = state.base.content.copy(), 0.0
     y, x = np.argwhere(box.inside)[len(np.argwhere(box.inside)) // 2]
     for side in range(2, box.width):
