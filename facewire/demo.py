@@ -14,7 +14,7 @@ import logging
 import multiprocessing as mp
 import queue
 import tempfile
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -29,17 +29,15 @@ from facewire.protocol.keys import write_keypair
 from facewire.protocol.transport import SenderEndpoint
 from facewire.receiver.recorder import Mp4Recorder, at_input_size
 from facewire.sender.audio import with_sound
-from facewire.sender.capture import CapturedFrame, CaptureError, VideoSource, demo_clip_path
+from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.lift import MarkerFaceTracker
-from facewire.sender.markers import NO_MARKERS
 from facewire.sender.rate_cap import GEOMETRY_KBPS
 from facewire.sender.session import (
-    FACE_SEARCH_KEEP,
     capped_size,
-    face_search,
     run_sender,
     scaled,
+    start_session,
     wait_until_ready,
 )
 from facewire.sender.snapshot_draft import draft, sharper
@@ -121,21 +119,7 @@ def _call(
     frames = scaled(video.frames(limit=args.frames), size)
     # The frames before the face are not sent (but the last FACE_SEARCH_KEEP): the snapshot
     # holds from frame 0, so the recording shows the first picture for them.
-    buffered: deque[CapturedFrame] = deque(maxlen=FACE_SEARCH_KEEP)
-    snapshot, read = None, 0
-    for frame in itertools.islice(frames, face_search(video.fps)):
-        buffered.append(frame)
-        read += 1
-        snapshot = encoder.start(frame, seq=0)
-        if snapshot is not None:
-            break
-    if snapshot is None:
-        if tracker is not None and tracker.state == NO_MARKERS:
-            raise CaptureError(
-                f"a face but no markers on it in the first {read} frames of "
-                f"{video.name} (--tracker markers: see the README for where they go)"
-            )
-        raise CaptureError(f"no face found in the first {read} frames of {video.name}")
+    snapshot, buffered = start_session(encoder, frames, video.fps, video.name, seq=0)
 
     ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited sockets or GL state
     results = ctx.Queue()
@@ -162,7 +146,7 @@ def _call(
             _wait_for_join(endpoint, proc, results)
             # Frames read before the call began count as captured now; pacing restarts.
             video.resync(buffered[-1].index + 1)
-            buffered = deque(dataclasses.replace(f, capture_us=now_us()) for f in buffered)
+            buffered = [dataclasses.replace(f, capture_us=now_us()) for f in buffered]
             keep = Mp4Recorder(sent, *size, video.fps) if sent else None  # as sent
             sound = sound_as_asked(
                 args,

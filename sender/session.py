@@ -28,6 +28,8 @@ from facewire.protocol.packets import (
 from facewire.protocol.transport import SenderEndpoint, TransportError
 from facewire.sender.capture import CapturedFrame, CaptureError
 from facewire.sender.encoder import FaceEncoder
+from facewire.sender.lift import MarkerFaceTracker
+from facewire.sender.markers import NO_MARKERS
 from facewire.sender.refresh import REFRESH_KBPS
 from facewire.sender.rem import BUDGET_KBPS as EYES_KBPS
 from facewire.sender.rem import MOUTH_BUDGET_KBPS
@@ -249,22 +251,32 @@ def face_search(fps: float) -> int:
 
 
 def start_session(
-    encoder: FaceEncoder, frames: Iterator[CapturedFrame], fps: float, name: str
+    encoder: FaceEncoder,
+    frames: Iterator[CapturedFrame],
+    fps: float,
+    name: str,
+    seq: int | None = None,
 ) -> tuple[Snapshot, list[CapturedFrame]]:
     """Start ``encoder`` on the first frame that shows a face within FACE_SEARCH_S of input.
 
-    Returns the snapshot and the last FACE_SEARCH_KEEP frames read (the face frame last): they
-    still have to be sent. Raises CaptureError (one line, naming the source ``name``) when
-    none shows a face.
+    Returns the snapshot, valid from frame ``seq`` (default: the first frame kept), and the
+    last FACE_SEARCH_KEEP frames read (the face frame last): they still have to be sent.
+    Raises CaptureError (one line, naming the source ``name``) when none shows a face, or
+    with the marker tracker none shows the markers on it.
     """
     kept: deque[CapturedFrame] = deque(maxlen=FACE_SEARCH_KEEP)
     read = 0
     for frame in itertools.islice(frames, face_search(fps)):
         kept.append(frame)
         read += 1
-        snapshot = encoder.start(frame, seq=kept[0].index)
+        snapshot = encoder.start(frame, seq=kept[0].index if seq is None else seq)
         if snapshot is not None:
             return snapshot, list(kept)
+    if isinstance(encoder.tracker, MarkerFaceTracker) and encoder.tracker.state == NO_MARKERS:
+        raise CaptureError(
+            f"a face but no markers on it in the first {read} frames of {name} "
+            "(--tracker markers: see the README for where they go)"
+        )
     raise CaptureError(f"no face found in the first {read} frames of {name}")
 
 
