@@ -73,8 +73,36 @@ def host_port(text: str, default_port: int = 4222) -> tuple[str, int]:
     return host, port
 
 
+#: Where the kernel's ephemeral ports are read, and what they are if it cannot be read.
+EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+EPHEMERAL_DEFAULT = (32768, 60999)
+#: free_port looks from here up to the ephemeral range.
+LOWEST_FREE_PORT = 10_000
+
+
+def ephemeral_ports() -> tuple[int, int]:
+    """(first, last): the ports the kernel gives outgoing connections."""
+    try:
+        first, last = (int(v) for v in EPHEMERAL_RANGE.read_text().split())
+    except (OSError, ValueError):
+        return EPHEMERAL_DEFAULT
+    return first, last
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket() as s:
+    """A port nothing listens on at ``host``, below the kernel's ephemeral ports: of ports
+    picked ahead for several relays, none can be taken meanwhile by a connection the first
+    ones make (a cluster's route port once was, and its node did not start)."""
+    first = ephemeral_ports()[0]
+    for _ in range(100 if first > LOWEST_FREE_PORT else 0):
+        port = LOWEST_FREE_PORT + secrets.randbelow(first - LOWEST_FREE_PORT)
+        with socket.socket() as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            return port
+    with socket.socket() as s:  # no room below the range: any the kernel gives
         s.bind((host, 0))
         return int(s.getsockname()[1])
 

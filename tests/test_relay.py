@@ -5,13 +5,21 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from facewire.relay import Relay, RelayConfig, RelayError, free_port, host_port
+from facewire.relay import (
+    Relay,
+    RelayConfig,
+    RelayError,
+    ephemeral_ports,
+    free_port,
+    host_port,
+)
 
 pytest.importorskip("nats")
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,6 +57,18 @@ def test_token_admits_and_jetstream_is_on() -> None:
         no_token = f"nats://127.0.0.1:{relay.config.port}"
         assert "Authorization Violation" in asyncio.run(_connect(no_token))
     assert relay.process is not None and relay.process.poll() is not None
+
+
+def test_ports_picked_ahead_are_none_a_connection_could_take() -> None:
+    """A cluster's ports are picked before its nodes start, and the first nodes connect to
+    the others' route ports meanwhile: a port from the kernel's ephemeral range could be
+    such a connection's own (a node once could not bind its route port that way)."""
+    first, _ = ephemeral_ports()
+    ports = {free_port() for _ in range(20)}
+    assert all(p < first for p in ports), sorted(ports)
+    for port in ports:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", port))  # free indeed
 
 
 def test_port_taken_is_one_line() -> None:
