@@ -114,9 +114,9 @@ class _SendingSide:
         args = self.args
         source = _Source(args)
         try:
-            # One session a run: a room's peers know a sender by its key, not its session,
-            # and would draw a new scene's frames with the old one's model (docs/rooms.md).
-            encoder = FaceEncoder(*source.size, source.video.fps, scenes=False)
+            # A new scene is a new session, as in a two-party call: its snapshot goes to the
+            # room's bucket, and the peers read it when its heartbeat names it (room_peer.py).
+            encoder = FaceEncoder(*source.size, source.video.fps)
             frames = source.frames()
             snapshot, buffered = start_session(encoder, frames, source.video.fps, source.name)
             max_bps = DEFAULT_BUDGET_BPS if args.max_kbps is None else args.max_kbps * 1000

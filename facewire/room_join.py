@@ -1,4 +1,5 @@
-"""A newcomer to a room, joined on a thread of its own (facewire/room_peer.py)."""
+"""A newcomer to a room, or a peer's new scene, joined on a thread of its own
+(facewire/room_peer.py)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ class Joining:
     when the bucket has none of it yet). Read on the receiving loop, a relay slow to answer
     froze everyone else's pictures meanwhile; the decoder is then built on that loop (GL on
     one thread). The newcomer's messages wait in :attr:`backlog` until it is ready; ``ready`` is
-    called (on the joining thread) when it is, or when it failed (:attr:`error`)."""
+    called (on the joining thread) when it is, or when it failed (:attr:`error`). A peer that
+    went on to a new scene's session is joined so too, its old picture shown meanwhile."""
 
     def __init__(
         self,
@@ -32,10 +34,14 @@ class Joining:
         record: Path | None,
         build: Callable[[Joining], None],
         ready: Callable[[], None],
+        session: int | None = None,
     ) -> None:
         self.name = name
         self.kid = kid
         self.record = record  # where the newcomer's recording goes
+        #: The session a peer already shown went on to (its new scene: protocol.md 8.9),
+        #: whose snapshot ``build`` reads; None for a newcomer.
+        self.session = session
         self.backlog: deque[tuple[str, bytes, int]] = deque(maxlen=JOIN_BACKLOG)
         #: What ``build`` read: the newcomer's snapshot.
         self.snapshot: Snapshot | None = None

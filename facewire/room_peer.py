@@ -132,6 +132,25 @@ class Peer:
         self.audio = sound.for_peer(name, self.shown, snapshot.fps) if sound is not None else None
         self.first_seq: int | None = None  # the sender's frame the recording starts with
 
+    def new_scene(self, snapshot: Snapshot) -> None:
+        """Draw from ``snapshot`` on: the sender cut to a new scene, which it sends in a
+        session of its own (docs/protocol.md 8.9). The recording, the sound and the gallery's
+        tile go on; the last picture stays until the new session's keyframe. ValueError (and
+        nothing changed) for a snapshot this decoder cannot take, or of another frame size
+        (a recording has one)."""
+        from facewire.receiver.decoder import FaceDecoder
+        from facewire.receiver.interpolation import Painter
+
+        size = (snapshot.width, snapshot.height)
+        if size != (self.snapshot.width, self.snapshot.height):
+            raise ValueError(f"a new scene of {size[0]}x{size[1]}, not its first one's size")
+        decoder = FaceDecoder(snapshot)
+        self.decoder.close()
+        self.snapshot, self.decoder = snapshot, decoder
+        if self.painter is not None:
+            self.painter = Painter(decoder)
+        self.chain_broken = True
+
     def take(self, packet: object, figures: PeerFigures, arrival_us: int) -> bool:
         """Decode (and record, and play) one packet; True when a keyframe should be asked
         for. ``arrival_us``: when its message came."""
@@ -238,6 +257,7 @@ class PeerFigures:
         self.malformed = 0
         self.audio_packets = 0
         self.sessions = 0
+        self.scenes = 0  # new scenes it went on to within a session (docs/protocol.md 8.9)
         self.left: str | None = None
         self.last_frame_us: int | None = None
         self.max_gap_ms = 0.0  # the longest wait between two decoded frames (a freeze)
@@ -270,6 +290,7 @@ class PeerFigures:
             "max_gap_ms": round(self.max_gap_ms, 1),
             "freezes": self.freezes,
             "sessions": self.sessions,
+            "scenes": self.scenes,
             "keyframe_requests": self.keyframe_requests,
             "chain_breaks": self.chain_breaks,
             "malformed": self.malformed,
@@ -381,6 +402,17 @@ class RoomReceiver:
             if isinstance(packet, Bye):
                 self._drop(peer, "said bye", play_out=True)
                 return
+            if (
+                isinstance(packet, (Heartbeat, KeyFrame))
+                and packet.session_id != peer.snapshot.session_id
+            ):
+                # Its new scene (a heartbeat says it first, and ends its message). Drawn with
+                # this model it would be the old scene with the new face on it: its messages
+                # wait until its snapshot is read (a keyframe's, the keyframe among them).
+                self._new_scene(peer, packet.session_id)
+                if isinstance(packet, KeyFrame):
+                    self.joining[sender].backlog.append((subject, data, arrival_us))
+                return
             if not isinstance(packet, Heartbeat):
                 want_keyframe |= peer.take(packet, figures, arrival_us)
         if want_keyframe or peer.chain_broken:
@@ -396,12 +428,14 @@ class RoomReceiver:
             self._rejected(sender, exc)
             return None
         peer = self.peers.get(sender)
-        if peer is not None and peer.kid == kid:
-            return peer
         joining = self.joining.get(sender)
+        if peer is not None and peer.kid == kid and (joining is None or joining.session is None):
+            return peer
         if joining is not None:
             if joining.kid == kid:
                 joining.backlog.append((subject, data, arrival_us))
+                if peer is not None:  # its new scene is being joined: it is not silent
+                    peer.last_heard = time.monotonic()
             return None
         if not kid_is_of(kid, sender):
             self._rejected(sender, SFrameError(f"KID {kid:#x} is not {sender}'s"))
@@ -432,6 +466,12 @@ class RoomReceiver:
         self.joining[sender] = joining
         return None
 
+    def _new_scene(self, peer: Peer, session: int) -> None:
+        """``peer``'s packets name ``session``: its new scene's snapshot is read as a
+        newcomer's is, and its messages wait for it (:meth:`_joined` gives it to ``peer``)."""
+        joining = Joining(peer.name, peer.kid, peer.record, self._build, self._wake, session)
+        self.joining[peer.name] = joining
+
     def _wake(self) -> None:
         self.inbox.put(_WAKE)
 
@@ -447,6 +487,13 @@ class RoomReceiver:
         snapshot = decode(self.opener.open(sealed, self.key.metadata(name, SNAPSHOT), False))
         if not isinstance(snapshot, Snapshot):
             raise PacketError(f"expected a Snapshot, got {type(snapshot).__name__}")
+        if joining.session is not None and snapshot.session_id != joining.session:
+            # The sender puts a new scene's snapshot in the bucket before it says so: this
+            # is an older one (or a forged message's session).
+            raise PacketError(
+                f"the bucket has session {snapshot.session_id}, not the {joining.session} "
+                "its messages name"
+            )
         self._request_keyframe(name, snapshot.seq)
         joining.asked_keyframe = True
         joining.snapshot = snapshot
@@ -457,6 +504,10 @@ class RoomReceiver:
         name = joining.name
         del self.joining[name]
         exc, peer = joining.error, None
+        shown = self.peers.get(name) if joining.session is not None else None
+        if shown is not None:
+            self._scene_joined(shown, joining)
+            return
         if exc is None and joining.snapshot is not None:
             try:
                 peer = Peer(
@@ -497,6 +548,32 @@ class RoomReceiver:
             f"{name} joined: {snapshot.width}x{snapshot.height} at {snapshot.fps:g} fps"
             + (f", recording to {peer.record}" if peer.record is not None else "")
         )
+        for item in joining.backlog:
+            self._handle(*item)
+
+    def _scene_joined(self, peer: Peer, joining: Joining) -> None:
+        """``peer``'s new scene was read: drawn from now on, its messages so far decoded. If
+        it cannot be, the peer leaves and those messages join it again as a newcomer (with
+        the bucket's snapshot then, in a recording of its own)."""
+        exc = joining.error
+        if exc is None and joining.snapshot is None:
+            exc = PacketError("the bucket has no snapshot of it")
+        if exc is None:
+            try:
+                peer.new_scene(joining.snapshot)  # type: ignore[arg-type]
+            except ValueError as refused:
+                exc = refused
+        if exc is None:
+            figures = self.figures[peer.name]
+            figures.scenes += 1
+            if joining.asked_keyframe:
+                figures.keyframe_requests += 1
+                peer.last_request = time.monotonic()  # its keyframe is on its way
+            self.notify(f"{peer.name}: a new scene from frame {peer.snapshot.seq}")
+        else:
+            logger.info("%s's new scene: %s", peer.name, exc)
+            self._drop(peer, f"its new scene cannot be shown: {exc}")
+            self.asked.pop(peer.name, None)  # its next message is read as a newcomer's
         for item in joining.backlog:
             self._handle(*item)
 

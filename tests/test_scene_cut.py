@@ -4,7 +4,6 @@ with that session in the same call and never draws the old face over the new sce
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from facewire.cli import main
 from facewire.loopback import Loopback
 from facewire.models.mesh import load_canonical
-from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+from facewire.sender.capture import CapturedFrame
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.scene_cut import (
     BETTER_AFTER_S,
@@ -28,32 +27,7 @@ from facewire.sender.scene_cut import (
 )
 from facewire.sender.session import _SceneStart
 from facewire.sender.snapshot_draft import is_draft
-
-FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
-BEFORE, AFTER = 30, 150  # frames of the bundled clip, then of the other scene (5 s: its session
-# takes a second to start on a busy machine, seconds on a very busy one)
-
-
-def bundled(count: int) -> list[np.ndarray]:
-    with VideoSource(demo_clip_path()) as video:
-        return [f.image for f in video.frames(limit=count)]
-
-
-def other_scene(count: int, size: tuple[int, int] = (640, 480)) -> list[np.ndarray]:
-    """Another shot: a photographed astronaut on a flat wall, the camera's noise on it."""
-    face = cv2.imread(str(FIXTURE))
-    width, height = size
-    canvas = np.full((height, width, 3), (70, 120, 150), np.uint8)
-    m = cv2.getRotationMatrix2D((210, 210), 0.0, height / 420 * 0.9)
-    m[:, 2] += (width / 2 - 210, height / 2 - 210)
-    cv2.warpAffine(face, m, size, dst=canvas, borderMode=cv2.BORDER_TRANSPARENT)
-    rng = np.random.default_rng(5)
-    noisy = [canvas.astype(np.int16) + rng.integers(-2, 3, canvas.shape) for _ in range(count)]
-    return [np.clip(f, 0, 255).astype(np.uint8) for f in noisy]
-
-
-def spliced() -> list[np.ndarray]:
-    return bundled(BEFORE) + other_scene(AFTER)
+from tests.cut_clip import AFTER, BEFORE, FIXTURE, bundled, off, other_scene, spliced
 
 
 def test_a_talking_head_is_one_scene_and_a_splice_is_a_cut() -> None:
@@ -90,10 +64,6 @@ def _call(frames: list[np.ndarray], scenes: bool) -> tuple[list[np.ndarray], int
         return pictures, both.scenes
 
 
-def _off(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.abs(a.astype(int) - b.astype(int)).mean())
-
-
 def test_after_a_cut_the_receiver_draws_the_new_scene() -> None:
     frames = spliced()
     pictures, scenes = _call(frames, scenes=True)
@@ -101,9 +71,9 @@ def test_after_a_cut_the_receiver_draws_the_new_scene() -> None:
     assert scenes == 1
     # The new scene from its first frame on: the snapshot is made of it.
     for i in (BEFORE, BEFORE + AFTER // 2, len(frames) - 1):
-        assert _off(pictures[i], frames[i]) < 12.0, i
+        assert off(pictures[i], frames[i]) < 12.0, i
     # Without it, the old scene stays, with the new face pasted over it.
-    assert _off(still[-1], frames[-1]) > 3 * _off(pictures[-1], frames[-1])
+    assert off(still[-1], frames[-1]) > 3 * off(pictures[-1], frames[-1])
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +105,7 @@ def test_a_call_goes_on_across_a_cut_in_a_new_session(demo: tuple) -> None:
     assert stats["scenes"] == 1 and len(stats["scene_first_s"]) == 1
     read = stats["frames_in"] + stats["frames_dropped"]  # sent, or left out by a busy machine
     assert stats["frames_out"] == read == len(inputs) == len(rebuilt)
-    assert _off(rebuilt[-1], inputs[-1]) < 12.0
+    assert off(rebuilt[-1], inputs[-1]) < 12.0
 
 
 def test_until_the_new_scene_comes_the_old_picture_stays(demo: tuple) -> None:
@@ -143,8 +113,8 @@ def test_until_the_new_scene_comes_the_old_picture_stays(demo: tuple) -> None:
     scene with the new face on it (it would be closer to neither)."""
     inputs, rebuilt, _ = demo
     old = rebuilt[BEFORE - 1]
-    new = [_off(rebuilt[i], inputs[i]) < 12.0 for i in range(BEFORE, len(inputs))]
-    held = [_off(rebuilt[i], old) < 2.0 for i in range(BEFORE, len(inputs))]
+    new = [off(rebuilt[i], inputs[i]) < 12.0 for i in range(BEFORE, len(inputs))]
+    held = [off(rebuilt[i], old) < 2.0 for i in range(BEFORE, len(inputs))]
     assert all(a or b for a, b in zip(new, held, strict=True))
     first = new.index(True)
     assert all(new[first:])
@@ -157,7 +127,7 @@ def test_a_black_frame_is_no_new_scene() -> None:
     frames[20] = np.zeros_like(frames[20])
     pictures, scenes = _call(frames, scenes=True)
     assert scenes == 0
-    assert _off(pictures[-1], frames[-1]) < 12.0
+    assert off(pictures[-1], frames[-1]) < 12.0
 
 
 def test_a_face_that_comes_back_after_the_tracker_strayed_is_no_new_scene() -> None:
@@ -179,7 +149,7 @@ def test_a_face_that_comes_back_after_the_tracker_strayed_is_no_new_scene() -> N
             both.step(CapturedFrame(i, image, i * 33_333))
             strayed |= encoder._new_scene
             if i == 40:
-                assert _off(both.picture(), image) < 6.0
+                assert off(both.picture(), image) < 6.0
         scenes = both.scenes
     assert strayed  # the tracker did take the second face
     assert scenes == 0
@@ -251,7 +221,7 @@ def test_the_face_seen_far_better_than_in_its_snapshot_begins_a_new_session() ->
     once the face has looked into the camera for BETTER_FRAMES frames, the call goes on in
     a session made from that view (mad900: face SSIM 0.527 -> 0.635)."""
     frames = bundled(90)
-    off = []
+    apart = []
     for profile in (True, False):
         encoder = FaceEncoder(640, 480, 30.0, scenes=True)
         with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as both:
@@ -263,11 +233,11 @@ def test_the_face_seen_far_better_than_in_its_snapshot_begins_a_new_session() ->
                 both.step(CapturedFrame(i, image, i * 33_333))
                 pictures.append(both.picture())
             assert both.scenes == (1 if profile else 0)
-            off.append([_off(p, f) for p, f in zip(pictures[60:], frames[60:], strict=True)])
+            apart.append([off(p, f) for p, f in zip(pictures[60:], frames[60:], strict=True)])
             # The new session's snapshot saw the face as it is: no other is due.
             assert encoder.better_view.share > FRONTAL_SHARE
     # The call goes on in the new session, drawn frame by frame as the old one was.
-    assert np.mean(off[0]) < np.mean(off[1]) + 1.0
+    assert np.mean(apart[0]) < np.mean(apart[1]) + 1.0
 
 
 def test_a_new_scenes_versions_for_a_thin_link_are_made_with_it_off_the_calls_loop() -> None:
