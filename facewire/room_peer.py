@@ -209,6 +209,12 @@ class Peer:
                 self.recorder.write(self.last_picture)
         return int(self.recorder.frames)
 
+    def said_bye(self, seq: int) -> None:
+        """The sender's stream ended before its frame ``seq``: the recording holds the last
+        picture to there (frames a still face did not send), as a two-party one does."""
+        if self.recorder is not None and self.last_picture is not None:
+            self._hold(seq)
+
     def _record(self, values: Any) -> np.ndarray:
         assert self.painter is not None
         picture = self.painter.exact(values)
@@ -400,6 +406,7 @@ class RoomReceiver:
         want_keyframe = False
         for packet in self._packets(peer, bundle, figures):
             if isinstance(packet, Bye):
+                peer.said_bye(packet.seq)
                 self._drop(peer, "said bye", play_out=True)
                 return
             if (
@@ -555,12 +562,14 @@ class RoomReceiver:
         """``peer``'s new scene was read: drawn from now on, its messages so far decoded. If
         it cannot be, the peer leaves and those messages join it again as a newcomer (with
         the bucket's snapshot then, in a recording of its own)."""
-        exc = joining.error
-        if exc is None and joining.snapshot is None:
+        exc, snapshot = joining.error, joining.snapshot
+        if exc is not None and not isinstance(exc, (SFrameError, PacketError, ValueError)):
+            raise exc
+        if exc is None and snapshot is None:
             exc = PacketError("the bucket has no snapshot of it")
-        if exc is None:
+        if exc is None and snapshot is not None:
             try:
-                peer.new_scene(joining.snapshot)  # type: ignore[arg-type]
+                peer.new_scene(snapshot)
             except ValueError as refused:
                 exc = refused
         if exc is None:
