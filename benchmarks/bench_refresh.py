@@ -3,7 +3,7 @@ rest of the picture.
 
 Usage:
   PYOPENGL_PLATFORM=egl python benchmarks/bench_refresh.py --input CLIP [--input CLIP ...]
-      [--frames N] [--object] [--pictures DIR]
+      [--frames N] [--object [--place chin|cheek|over]] [--pictures DIR]
 
 Each clip runs twice through both ends in one process (facewire/loopback.py: real codecs,
 packets as bytes), without refreshes and with them, every frame rebuilt and compared with its
@@ -52,10 +52,12 @@ def read(path: str, count: int) -> tuple[list[np.ndarray], float]:
 
 
 def hold_object(
-    frames: list[np.ndarray], fps: float
+    frames: list[np.ndarray], fps: float, place: str = "chin"
 ) -> tuple[list[np.ndarray], tuple[slice, slice], int, int]:
-    """``frames`` with the object held beside the chin from 1 s to 2 s; its area and the
-    first frames with it and without it again."""
+    """``frames`` with the object held from 1 s to 2 s beside the chin (``place`` "chin"),
+    beside the cheek at the eyes' height ("cheek", within the head's reach), or over the
+    chin and jaw, half on the face ("over"); its area and the first frames with it and
+    without it again."""
     points = LandmarkTracker().track(frames[0])
     if points is None:
         raise SystemExit("no face in the first frame")
@@ -68,6 +70,11 @@ def hold_object(
     thing = cv2.resize(flag, (ow, oh), interpolation=cv2.INTER_AREA)
     x = min(int(p[:, 0].max() + 0.05 * face), w - ow)
     y = max(0, min(int(p[:, 1].max() - 0.8 * oh), h - oh))
+    if place == "cheek":
+        eyes = float(p[[33, 263], 1].mean())
+        y = max(0, min(int(eyes - 0.5 * oh), h - oh))
+    elif place == "over":
+        x = min(int(p[:, 0].max() - 0.5 * ow), w - ow)
     area = np.s_[y : y + oh, x : x + ow]
     start, end = round(fps), round(2 * fps)
     out = [f.copy() for f in frames]
@@ -105,6 +112,7 @@ def main() -> None:
     parser.add_argument("--input", action="append", required=True)
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--object", action="store_true")
+    parser.add_argument("--place", choices=("chin", "cheek", "over"), default="chin")
     parser.add_argument("--pictures", type=Path)
     args = parser.parse_args()
     cv2.setNumThreads(1)
@@ -112,7 +120,7 @@ def main() -> None:
         frames, fps = read(path, args.frames)
         area, start, end = None, 0, 0
         if args.object:
-            frames, area, start, end = hold_object(frames, fps)
+            frames, area, start, end = hold_object(frames, fps, args.place)
         name = Path(path).stem
         for refresh in (False, True):
             tag = f"{name}_{'refresh' if refresh else 'model'}"

@@ -5,9 +5,11 @@ over it. What that frame never showed (a hand raised to the chin, an object held
 a person uncovers, a light switched on) it cannot show. The sender rebuilds the receiver's
 surroundings as it does for the face's edge (no drawing, on the frame reduced to about 120
 pixels wide, every fourth frame: 0.13 s is soon enough, and the sender has 16 ms a frame in
-all) and compares them with its frame in blocks, leaving out the drawn face; nothing new is cut
-where the warp carries the surroundings with the head (hair, ears: above the mouth, within the
-head's reach), as an area fixed in the frame there goes stale when the head moves. Each pixel's
+all) and compares them with its frame in blocks, leaving out the drawn face; where the warp
+carries the surroundings with the head (hair, ears: above the mouth, within the head's reach)
+something new is cut only while the head holds still (a hand raised beside it), and given back
+as soon as the head moves on, as an area fixed in the frame there goes stale when the head
+moves (a lock of hair shows where the head was). Each pixel's
 difference is the least over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a
 pixel or two off (which the warp leaves, and the edge's corrections mend) does not count; a
 block whose mean difference stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's
@@ -58,11 +60,22 @@ PERSIST_S = 0.25
 #: ... in a group of at least this many blocks: a block or two failing is most often hair or
 #: an ear a few pixels off as the head turns, and a refresh of it goes stale as it moves on.
 MIN_BLOCKS = 4
+#: Where the warp carries the surroundings with the head, a refresh is cut only while the
+#: head has stayed within STILL of its width of where it is for STILL_S seconds.
+STILL = 0.08
+STILL_S = 0.25
+#: A refresh whose failing blocks lie at least this share where the warp carries the
+#: surroundings with the head goes when the head moves on.
+HEAD_SHARE = 0.5
 _CHANNEL_MEAN = np.full((1, 3), 1.0 / 3.0, np.float32)
 #: A refresh's image is at most this many pixels (scaled down if larger) ...
 MAX_PIXELS = 64 * 64
 #: ... at this WebP quality.
 QUALITY = 60
+
+
+#: A face's place in the work image: centre x, centre y and width, pixels.
+Face = tuple[float, float, float]
 
 
 @dataclass
@@ -71,6 +84,9 @@ class _Shown:
 
     packet: Refresh
     blocks: tuple[int, int, int, int]  # column, row, end column, end row
+    #: Where the face was when it was cut, if it was cut mostly for what fails where the
+    #: warp carries the surroundings with the head (it goes when the head moves on).
+    head: Face | None
 
 
 class RefreshMeter:
@@ -104,6 +120,9 @@ class RefreshMeter:
         ys, xs = np.mgrid[: self.rows, : self.cols]
         self._block_centres = (np.c_[xs.ravel(), ys.ravel()] + 0.5) * BLOCK - 0.5  # work pixels
         self._persist = max(1, round(PERSIST_S * fps / EVERY))
+        self._still = max(1, round(STILL_S * fps / EVERY))
+        # Where the face was at the last measurements.
+        self._faces: list[Face] = []
         self._frames = 0
         self.bucket = RateCap(kbps, fps, BUCKET_S)
         self.bucket.tokens = self.bucket.capacity
@@ -161,12 +180,24 @@ class RefreshMeter:
         failing &= ~face
         self._failing = np.where(failing, self._failing + 1, 0)
         due = self._failing >= self._persist
-        # Nothing new is cut where the warp carries the surroundings with the head, but a
-        # refresh reaching in there that no longer matches is still given back or replaced.
-        due &= ~self._head_blocks(poly) | self._under_shown()
+        carried, still = self._head_blocks(poly), self._head_still(poly)
+        # A refresh cut where the head carries the surroundings (while it held still) goes
+        # once the head has moved on from where it was: a lock of hair, fixed in the frame,
+        # showed where the head had been for 20 frames (Claire), as hair over hair differs
+        # too little to fail. A hand still held there fails again, and is cut again.
+        stale = [s for s in self._shown if s.head is not None and _moved(s.head, self._faces[-1])]
+        if stale:
+            return self._spent([self._clear(seq, s) for s in stale])
+        # Nothing new is cut where the warp carries the surroundings with a moving head, but
+        # a refresh reaching in there that no longer matches is still given back or replaced.
+        due &= ~carried | self._under_shown() | still
         if not due.any():
             return []
         (c0, r0, c1, r1), size = self._largest(due)
+        group = due[r0:r1, c0:c1]
+        head: Face | None = None
+        if carried[r0:r1, c0:c1][group].mean() >= HEAD_SHARE:
+            head = self._faces[-1]  # it goes when the head moves on
         # Where the model alone matches the frame, a refresh there is only in the way; and one
         # that no longer matches and cannot be replaced now is older than the model's picture
         # (a head that moved on): either goes (a few bytes, whatever the bucket holds).
@@ -175,11 +206,17 @@ class RefreshMeter:
         replace = can_send and size >= MIN_BLOCKS
         if under and not (replace and model_fails[r0:r1, c0:c1].any()):
             packets = [self._clear(seq, s) for s in under]
-        elif replace:
-            packets = [self._cut(seq, image, (c0, r0, c1, r1))]
+        elif replace and not (head is not None and any(s.head is None for s in under)):
+            # (One that goes with the head's stillness takes no other's place: on Claire
+            # one of her jaw's, kept to the clip's end before, went with a lock of her hair.)
+            packets = [self._cut(seq, image, (c0, r0, c1, r1), head)]
         else:
             return []
         self._failing[r0:r1, c0:c1] = 0
+        return self._spent(packets)
+
+    def _spent(self, packets: list[Refresh]) -> list[Refresh]:
+        """``packets``, paid for."""
         for packet in packets:
             self.bucket.spend(len(bytes(packet)))
             self.bytes += len(bytes(packet))
@@ -219,6 +256,18 @@ class RefreshMeter:
         turn, it took a clip's whole budget."""
         return carried_by_head(self._block_centres, poly).reshape(self.rows, self.cols)
 
+    def _head_still(self, poly: np.ndarray) -> bool:
+        """Whether the head has stayed within STILL of its width for STILL_S (a hand raised
+        beside it, held: a refresh fixed in the frame stays right while the head stays where
+        it is)."""
+        xy = poly[:, :2]
+        centre = xy.mean(0)
+        self._faces.append((float(centre[0]), float(centre[1]), float(np.ptp(xy[:, 0]))))
+        del self._faces[: -(self._still + 1)]
+        if len(self._faces) <= self._still:
+            return False
+        return not any(_moved(self._faces[-1], face) for face in self._faces[:-1])
+
     def _under_shown(self) -> np.ndarray:
         """(rows, cols) bool: blocks that a refresh shown now covers."""
         under = np.zeros((self.rows, self.cols), bool)
@@ -243,7 +292,9 @@ class RefreshMeter:
         x, y = c0 * k, r0 * k
         return x, y, min(self.width, c1 * k) - x, min(self.height, r1 * k) - y
 
-    def _cut(self, seq: int, image: np.ndarray, blocks: tuple[int, int, int, int]) -> Refresh:
+    def _cut(
+        self, seq: int, image: np.ndarray, blocks: tuple[int, int, int, int], head: Face | None
+    ) -> Refresh:
         x, y, w, h = self._area(blocks)
         part = image[y : y + h, x : x + w]
         scale = min(1.0, float(np.sqrt(MAX_PIXELS / (w * h))))
@@ -255,7 +306,7 @@ class RefreshMeter:
             raise RuntimeError("WebP encoding failed")
         packet = Refresh(seq, x, y, w, h, "webp", data.tobytes())
         self._shown = [s for s in self._shown if not _overlap(s.blocks, blocks)]
-        self._shown.append(_Shown(packet, blocks))
+        self._shown.append(_Shown(packet, blocks, head))
         self._show(packet)
         logger.debug("refresh at frame %d: %dx%d px, %d bytes", seq, w, h, len(packet.data))
         return packet
@@ -294,6 +345,12 @@ def _least(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             least = diff if least is None else cv2.min(least, diff)
     assert least is not None
     return least
+
+
+def _moved(a: Face, b: Face) -> bool:
+    """Whether the face moved or changed its width by more than STILL of its width."""
+    reach = STILL * max(a[2], b[2])
+    return bool(np.hypot(a[0] - b[0], a[1] - b[1]) > reach or abs(a[2] - b[2]) > reach)
 
 
 def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
