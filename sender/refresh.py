@@ -5,10 +5,10 @@ over it. What that frame never showed (a hand raised to the chin, an object held
 a person uncovers, a light switched on) it cannot show. The sender rebuilds the receiver's
 surroundings as it does for the face's edge (no drawing, on the frame reduced to about 120
 pixels wide, every fourth frame: 0.13 s is soon enough, and the sender has 16 ms a frame in
-all) and compares them with its frame in blocks, leaving out the drawn face; where the warp
+all) and compares them with its frame in blocks, leaving out the drawn face. Where the warp
 carries the surroundings with the head (hair, ears: above the mouth, within the head's reach)
-something new is cut only while the head holds still (a hand raised beside it), and given back
-as soon as the head moves on, as an area fixed in the frame there goes stale when the head
+something new is cut only while the head holds still (a hand raised beside it), and given
+back as soon as the head moves on: an area fixed in the frame there goes stale when the head
 moves (a lock of hair shows where the head was). Each pixel's
 difference is the least over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a
 pixel or two off (which the warp leaves, and the edge's corrections mend) does not count; a
@@ -180,7 +180,8 @@ class RefreshMeter:
         failing &= ~face
         self._failing = np.where(failing, self._failing + 1, 0)
         due = self._failing >= self._persist
-        carried, still = self._head_blocks(poly), self._head_still(poly)
+        self._note_face(poly)
+        carried, still = self._head_blocks(poly), self._held_still()
         # A refresh cut where the head carries the surroundings (while it held still) goes
         # once the head has moved on from where it was: a lock of hair, fixed in the frame,
         # showed where the head had been for 20 frames (Claire), as hair over hair differs
@@ -256,14 +257,18 @@ class RefreshMeter:
         turn, it took a clip's whole budget."""
         return carried_by_head(self._block_centres, poly).reshape(self.rows, self.cols)
 
-    def _head_still(self, poly: np.ndarray) -> bool:
-        """Whether the head has stayed within STILL of its width for STILL_S (a hand raised
-        beside it, held: a refresh fixed in the frame stays right while the head stays where
-        it is)."""
+    def _note_face(self, poly: np.ndarray) -> None:
+        """Keep where the face is at this measurement (``poly``, its outline in work pixels),
+        and at the ones STILL_S before."""
         xy = poly[:, :2]
         centre = xy.mean(0)
         self._faces.append((float(centre[0]), float(centre[1]), float(np.ptp(xy[:, 0]))))
         del self._faces[: -(self._still + 1)]
+
+    def _held_still(self) -> bool:
+        """Whether the head has stayed within STILL of its width of where it is for STILL_S
+        (a hand raised beside it, held: a refresh fixed in the frame stays right while the
+        head stays where it is)."""
         if len(self._faces) <= self._still:
             return False
         return not any(_moved(self._faces[-1], face) for face in self._faces[:-1])
