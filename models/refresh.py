@@ -3,10 +3,11 @@
 Each refresh is an image of an area of the frame (a hand raised to the chin, an object, the
 scene a person uncovered), shown over the warped surroundings from its frame on and under
 the drawn face, which stays the geometry's (and not at the face's edge, where the face fades
-into what is under it). Its border fades over :data:`FEATHER` of its shorter side, so the
-area's edge does not show as a seam. A new refresh takes the place of every earlier one it
-overlaps; an empty one gives its area back to the model. Both ends keep one (the sender, to
-compare its frame with what the receiver shows: sender/refresh.py).
+into what is under it); or, for something in front of the face (a hand), over the drawn face
+too (:meth:`RefreshLayer.on_top`). Its border fades over :data:`FEATHER` of its shorter
+side, so the area's edge does not show as a seam. A new refresh takes the place of every
+earlier one it overlaps; an empty one gives its area back to the model. Both ends keep one
+(the sender, to compare its frame with what the receiver shows: sender/refresh.py).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ class _Area:
     y: int
     image: np.ndarray  # (h, w, 3) uint8, scaled to the area
     weight: np.ndarray  # (h, w, 1) float32
+    on_top: bool  # shown over the drawn face too (a hand in front of it)
 
     @property
     def box(self) -> tuple[int, int, int, int]:
@@ -43,7 +45,7 @@ class RefreshLayer:
 
     def __init__(self, width: int, height: int) -> None:
         self.width, self.height = width, height
-        self._waiting: list[tuple[int, int, int, int, int, np.ndarray | None]] = []
+        self._waiting: list[tuple[int, int, int, int, int, np.ndarray | None, bool]] = []
         self._shown: list[_Area] = []
 
     def fits(self, x: int, y: int, width: int, height: int) -> bool:
@@ -51,13 +53,21 @@ class RefreshLayer:
         return x >= 0 and y >= 0 and x + width <= self.width and y + height <= self.height
 
     def add(
-        self, seq: int, x: int, y: int, width: int, height: int, image: np.ndarray | None
+        self,
+        seq: int,
+        x: int,
+        y: int,
+        width: int,
+        height: int,
+        image: np.ndarray | None,
+        on_top: bool = False,
     ) -> None:
         """Keep a refresh of frame ``seq`` (shown from :meth:`due` of that frame on): ``image``
-        (any size, BGR) over the area, or None to give it back to the model."""
+        (any size, BGR) over the area, or None to give it back to the model; ``on_top``: over
+        the drawn face too (:meth:`on_top`)."""
         if not self.fits(x, y, width, height):
             raise ValueError(f"refresh area {width}x{height} at ({x}, {y}) outside the picture")
-        self._waiting.append((seq, x, y, width, height, image))
+        self._waiting.append((seq, x, y, width, height, image, on_top))
 
     def due(self, seq: int) -> None:
         """Show the refreshes of frames up to ``seq``, in the order they came."""
@@ -66,12 +76,12 @@ class RefreshLayer:
             if item[0] > seq:
                 later.append(item)
                 continue
-            _, x, y, w, h, image = item
+            _, x, y, w, h, image, on_top = item
             box = (x, y, x + w, y + h)
             self._shown = [a for a in self._shown if not _overlap(a.box, box)]
             if image is not None:
                 scaled = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)
-                self._shown.append(_Area(item[0], x, y, scaled, _feather(w, h)))
+                self._shown.append(_Area(item[0], x, y, scaled, _feather(w, h), on_top))
         self._waiting = later
         del self._shown[:-MAX_SHOWN]
 
@@ -88,16 +98,31 @@ class RefreshLayer:
             centre = face.mean(0)
             grown = centre + (1.0 + FACE_MARGIN) * (face - centre)
         for area in self._shown:
-            x0, y0, x1, y1 = area.box
+            if area.on_top:
+                continue
             weight = area.weight
             if grown is not None:
+                x0, y0, x1, y1 = area.box
                 inside = np.zeros((y1 - y0, x1 - x0), np.uint8)
                 cv2.fillPoly(inside, [np.round(grown - (x0, y0)).astype(np.int32)], 1)
                 weight = weight * (1 - inside)[..., None]
-            under = picture[y0:y1, x0:x1].astype(np.float32)
-            mixed = under + weight * (area.image.astype(np.float32) - under)
-            picture[y0:y1, x0:x1] = np.clip(mixed + 0.5, 0, 255).astype(np.uint8)
+            _blend(picture, area, weight)
         return picture
+
+    def on_top(self, picture: np.ndarray) -> np.ndarray:
+        """``picture`` (height, width, 3) uint8, the face drawn, with the refreshes shown over
+        the face too blended in (in place): what is in front of the face."""
+        for area in self._shown:
+            if area.on_top:
+                _blend(picture, area, area.weight)
+        return picture
+
+
+def _blend(picture: np.ndarray, area: _Area, weight: np.ndarray) -> None:
+    x0, y0, x1, y1 = area.box
+    under = picture[y0:y1, x0:x1].astype(np.float32)
+    mixed = under + weight * (area.image.astype(np.float32) - under)
+    picture[y0:y1, x0:x1] = np.clip(mixed + 0.5, 0, 255).astype(np.uint8)
 
 
 def _feather(width: int, height: int) -> np.ndarray:

@@ -172,8 +172,10 @@ class _Packet:
 
     KIND: ClassVar[Kind]
     CHANNEL: ClassVar[str] = CHANNEL_CONTROL
-    #: Number of msgpack fields after the header byte.
+    #: Number of msgpack fields after the header byte (at most, when the last ones are
+    #: optional: MIN_FIELDS at least).
     N_FIELDS: ClassVar[int]
+    MIN_FIELDS: ClassVar[int | None] = None
 
     def _to_fields(self) -> list[Any]:
         """Wire fields after the header byte; by default the dataclass fields in order."""
@@ -193,8 +195,10 @@ class _Packet:
         fields = _unpack(body)
         if not isinstance(fields, list):
             raise PacketError(f"{cls.__name__}: expected a msgpack array, got {_wire_type(fields)}")
-        if len(fields) != cls.N_FIELDS:
-            raise PacketError(f"{cls.__name__} needs {cls.N_FIELDS} fields, got {len(fields)}")
+        least = cls.N_FIELDS if cls.MIN_FIELDS is None else cls.MIN_FIELDS
+        if not least <= len(fields) <= cls.N_FIELDS:
+            wanted = f"{least} to {cls.N_FIELDS}" if least < cls.N_FIELDS else f"{cls.N_FIELDS}"
+            raise PacketError(f"{cls.__name__} needs {wanted} fields, got {len(fields)}")
         return cls._from_fields(fields)
 
     def __bytes__(self) -> bytes:
@@ -662,11 +666,14 @@ class Refresh(_Packet):
     x, y, width, height : the area of the frame it covers, pixels (x, y its top-left corner)
     codec : "jpeg", "png" or "webp", data the image (any size: it is scaled to the area); or
         codec "" and data empty: the area shows the model's picture again
+    over : 1 to show it over the drawn face too (a hand in front of the face), 0 under it; on
+        the wire only when 1 (an eighth field)
     """
 
     KIND: ClassVar[Kind] = Kind.REFRESH
     CHANNEL: ClassVar[str] = CHANNEL_REM
-    N_FIELDS: ClassVar[int] = 7
+    N_FIELDS: ClassVar[int] = 8
+    MIN_FIELDS: ClassVar[int | None] = 7
 
     seq: int
     x: int
@@ -675,9 +682,11 @@ class Refresh(_Packet):
     height: int
     codec: str
     data: bytes = field(repr=False)
+    over: int = 0
 
     def __post_init__(self) -> None:
         _set(self, "seq", _int("Refresh.seq", self.seq, 0, UINT32_MAX))
+        _set(self, "over", _int("Refresh.over", self.over, 0, 1))
         _set(self, "x", _int("Refresh.x", self.x, 0, MAX_REFRESH_SIDE - 1))
         _set(self, "y", _int("Refresh.y", self.y, 0, MAX_REFRESH_SIDE - 1))
         _set(self, "width", _int("Refresh.width", self.width, 1, MAX_REFRESH_SIDE))
@@ -699,6 +708,10 @@ class Refresh(_Packet):
     def clears(self) -> bool:
         """Whether it gives its area back to the model's picture."""
         return not self.codec
+
+    def _to_fields(self) -> list[Any]:
+        fields = super()._to_fields()
+        return fields if self.over else fields[:-1]  # seven fields, as before ``over``
 
 
 @dataclass(frozen=True, eq=False)

@@ -249,7 +249,9 @@ class FaceDecoder:
             logger.debug("refresh dropped: %s", exc)
             self.refresh_dropped += 1
             return False
-        self.refresh.add(packet.seq, packet.x, packet.y, packet.width, packet.height, image)
+        self.refresh.add(
+            packet.seq, packet.x, packet.y, packet.width, packet.height, image, bool(packet.over)
+        )
         return True
 
     def offer(self, packet: object) -> bool:
@@ -375,10 +377,11 @@ class FaceDecoder:
         # shows the real face edge there: no seam at the outline.
         feather = FEATHER * float(np.ptp(outline[:, 0]))
         image, face = self.renderer.finish(background, feather)
-        if edge is None:
-            return image
-        # The feathered edge and the surroundings go where the sender saw them.
-        return correct(image, face, outline, edge, feather, self.renderer.depth)
+        if edge is not None:
+            # The feathered edge and the surroundings go where the sender saw them.
+            image = correct(image, face, outline, edge, feather, self.renderer.depth)
+        # What the camera saw in front of the face (a hand), over it.
+        return self.refresh.on_top(image)
 
     def close(self) -> None:
         self.renderer.close()

@@ -65,6 +65,7 @@ from facewire.sender.edge import EdgeMeter
 from facewire.sender.fit_residual import FitResidual
 from facewire.sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from facewire.sender.lift import MarkerFaceTracker, MarkerFit
+from facewire.sender.occlusion import FaceOcclusion
 from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from facewire.sender.refresh import REFRESH_KBPS, RefreshMeter
 from facewire.sender.rem import RemEncoder
@@ -380,8 +381,9 @@ class FaceEncoder:
                 self._edge_smoother = ChannelSmoother({EDGE: self.steps[EDGE]})
         if self.use_refresh:
             self.refresh = RefreshMeter(
-                shown, at_snapshot, shown_people, self.fps, self.refresh_kbps
-            )
+                shown, at_snapshot, shown_people, self.fps, self.refresh_kbps,
+                self._occlusion(mesh, texture_webp),
+            )  # fmt: skip
         self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None
         self._depth = float(self._last_values[POSE_TRANSLATION][2] * self.steps[POSE_TRANSLATION])
@@ -408,6 +410,17 @@ class FaceEncoder:
             reference=[tuple(int(v) for v in self._last_values[s.name]) for s in specs],
             meta=meta,
         )
+
+    def _occlusion(self, mesh: FaceMesh, texture_webp: bytes) -> FaceOcclusion | None:
+        """What looks for a hand in front of the face (sender/occlusion.py), leaving out the
+        regions the REM patches show as they are; None without them."""
+        if self.rem is None:
+            return None
+        texture = decode_image(texture_webp, "snapshot texture")  # as the receiver does
+        left_out = np.zeros(texture.shape[:2], bool)
+        for box in self.rem.layout.boxes.values():
+            left_out[box.texture_slices] = True
+        return FaceOcclusion(mesh.triangles, mesh.uvs, texture, left_out)
 
     def scene_changed(self, frame: CapturedFrame) -> bool:
         """Whether ``frame`` shows another scene than the session's (a cut, another face, or
@@ -648,7 +661,9 @@ class FaceEncoder:
             if vertices is not None:
                 camera, body = motion
                 outline = vertices[self.canonical.outline]
-                refreshes += self.refresh.measure(frame.index, frame.image, outline, camera, body)
+                refreshes += self.refresh.measure(
+                    frame.index, frame.image, outline, camera, body, vertices
+                )
         may_send = self.rate_cap is None or self.rate_cap.next_frame()
         if not (may_send or patches or self._channels.keyframe_due(frame.index)):
             # Over the rate cap: the receiver keeps what it has (sender/rate_cap.py).

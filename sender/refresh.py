@@ -21,6 +21,12 @@ model with an empty one, whatever the bucket holds; so is a refresh that no long
 while the bucket cannot pay for a new one (the head moved on: frozen, it showed a piece of the
 head where it was). The images are paid from a token bucket of their own (:data:`REFRESH_KBPS`,
 with two seconds of credit: the first one goes at once, the ones after wait for its debt).
+
+What stands in front of the face (a hand: sender/occlusion.py finds it in the face's texture)
+is cut with the blocks beside the face that fail next to it (its arm) and shown over the face
+(``over``), kept while the area stays much the same and given back once the face is itself
+again. Without such blocks nothing is sent there: a face changing more than its snapshot can
+show (foreman's laugh) is no hand.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from facewire.models.refresh import RefreshLayer
 from facewire.models.surround import SurroundWarp, carried_by_head
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Refresh
+from facewire.sender.occlusion import FaceOcclusion
 from facewire.sender.rate_cap import RateCap
 
 logger = logging.getLogger(__name__)
@@ -67,6 +74,9 @@ STILL_S = 0.25
 #: A refresh whose failing blocks lie at least this share where the warp carries the
 #: surroundings with the head goes when the head moves on.
 HEAD_SHARE = 0.5
+#: What stands in front of the face is cut again when its area has moved so that it shares
+#: less than this (intersection over union) with the one shown.
+SAME_AREA = 0.6
 _CHANNEL_MEAN = np.full((1, 3), 1.0 / 3.0, np.float32)
 #: A refresh's image is at most this many pixels (scaled down if larger) ...
 MAX_PIXELS = 64 * 64
@@ -104,8 +114,11 @@ class RefreshMeter:
         person: np.ndarray,
         fps: float,
         kbps: float = REFRESH_KBPS,
+        occlusion: FaceOcclusion | None = None,
     ) -> None:
         self.height, self.width = background.shape[:2]
+        #: Finds what stands in front of the face, sent over it (None: not looked for).
+        self.occlusion = occlusion
         self.reduce = k = max(1, self.width // WORK_WIDTH)
         shift = 0.5 / k - 0.5
         self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])
@@ -163,17 +176,19 @@ class RefreshMeter:
         outline: np.ndarray,
         camera: np.ndarray | None,
         body: np.ndarray | None,
+        vertices: np.ndarray | None = None,
     ) -> list[Refresh]:
         """The refreshes of frame ``seq`` (``image``, (h, w, 3) BGR), where the receiver draws
         the face's outline at ``outline`` (k, 3) with the camera's and the body's homographies
-        (models/surround.py); none while the bucket is in debt or nothing fails."""
+        (models/surround.py); none while the bucket is in debt or nothing fails. ``vertices``:
+        the face's (n, 3) as drawn, to look for what is in front of it."""
         can_send = self.bucket.next_frame()
         self._frames += 1
         if (self._frames - 1) % EVERY:
             return []
         poly = self._work(outline)
         model = self.surround.warp(poly, self._in_work(camera), body=self._in_work(body))
-        shown = self.layer.over(model.copy(), poly[:, :2])
+        shown = self.layer.on_top(self.layer.over(model.copy(), poly[:, :2]))
         seen = self._reduced(image)
         failing = self._blocks(seen, shown) > DIFF_LEVEL
         face = self._face_blocks(poly)
@@ -181,6 +196,12 @@ class RefreshMeter:
         self._failing = np.where(failing, self._failing + 1, 0)
         due = self._failing >= self._persist
         self._note_face(poly)
+        if self.occlusion is not None and vertices is not None:
+            held = len(self._faces) > 1 and not _moved(self._faces[-2], self._faces[-1])
+            area = self.occlusion.update(image, vertices, held)
+            packets = self._in_front(seq, image, area, failing, can_send)
+            if packets:
+                return self._spent(packets)
         carried, still = self._head_blocks(poly), self._held_still()
         # A refresh cut where the head carries the surroundings (while it held still) goes
         # once the head has moved on from where it was: a lock of hair, fixed in the frame,
@@ -191,7 +212,8 @@ class RefreshMeter:
             return self._spent([self._clear(seq, s) for s in stale])
         # Nothing new is cut where the warp carries the surroundings with a moving head, but
         # a refresh reaching in there that no longer matches is still given back or replaced.
-        due &= ~carried | self._under_shown() | still
+        # What is shown over the face is the occlusion's to keep or give back.
+        due &= (~carried | self._under_shown() | still) & ~self._under_shown(over=True)
         if not due.any():
             return []
         (c0, r0, c1, r1), size = self._largest(due)
@@ -203,7 +225,9 @@ class RefreshMeter:
         # that no longer matches and cannot be replaced now is older than the model's picture
         # (a head that moved on): either goes (a few bytes, whatever the bucket holds).
         model_fails = (self._blocks(seen, model) > DIFF_LEVEL) & ~face
-        under = [s for s in self._shown if _overlap(s.blocks, (c0, r0, c1, r1))]
+        under = [
+            s for s in self._shown if not s.packet.over and _overlap(s.blocks, (c0, r0, c1, r1))
+        ]
         replace = can_send and size >= MIN_BLOCKS
         if under and not (replace and model_fails[r0:r1, c0:c1].any()):
             packets = [self._clear(seq, s) for s in under]
@@ -273,13 +297,54 @@ class RefreshMeter:
             return False
         return not any(_moved(self._faces[-1], face) for face in self._faces[:-1])
 
-    def _under_shown(self) -> np.ndarray:
-        """(rows, cols) bool: blocks that a refresh shown now covers."""
+    def _under_shown(self, over: bool = False) -> np.ndarray:
+        """(rows, cols) bool: blocks that a refresh shown now covers (``over``: one shown
+        over the face, else one under it)."""
         under = np.zeros((self.rows, self.cols), bool)
         for shown in self._shown:
-            c0, r0, c1, r1 = shown.blocks
-            under[r0:r1, c0:c1] = True
+            if bool(shown.packet.over) == over:
+                c0, r0, c1, r1 = shown.blocks
+                under[r0:r1, c0:c1] = True
         return under
+
+    def _in_front(
+        self,
+        seq: int,
+        image: np.ndarray,
+        area: tuple[int, int, int, int] | None,
+        failing: np.ndarray,
+        can_send: bool,
+    ) -> list[Refresh]:
+        """What to send of ``area`` (x, y, width, height: what stands in front of the face,
+        or None): it cut and shown over the face, unless one shown there covers it much the
+        same; or the one shown given back once nothing is in front of the face. The area
+        takes in the ``failing`` blocks beside the face that reach it (the rest of a hand)."""
+        shown = next((s for s in self._shown if s.packet.over), None)
+        if area is None:
+            return [] if shown is None else [self._clear(seq, shown)]
+        k = BLOCK * self.reduce
+        x, y, w, h = area
+        c0, r0 = x // k, y // k
+        c1, r1 = min(self.cols, -(-(x + w) // k)), min(self.rows, -(-(y + h) // k))
+        if c1 <= c0 or r1 <= r0:
+            return []
+        _, labels = cv2.connectedComponents(failing.astype(np.uint8), connectivity=8)
+        reaching = set(np.unique(labels[max(0, r0 - 1) : r1 + 1, max(0, c0 - 1) : c1 + 1]))
+        reaching.discard(0)
+        if not reaching and shown is None:
+            # Nothing beside the face fails with it: no hand, whose arm would, but the face
+            # changing more than the snapshot can show (foreman's laugh).
+            return []
+        for label in reaching:
+            rows, cols = np.nonzero(labels == label)
+            c0, r0 = min(c0, int(cols.min())), min(r0, int(rows.min()))
+            c1, r1 = max(c1, int(cols.max()) + 1), max(r1, int(rows.max()) + 1)
+        blocks = (c0, r0, c1, r1)
+        if shown is not None and _iou(shown.blocks, blocks) >= SAME_AREA:
+            return []
+        if not can_send:
+            return []
+        return [self._cut(seq, image, blocks, None, over=True)]
 
     def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``
@@ -298,7 +363,12 @@ class RefreshMeter:
         return x, y, min(self.width, c1 * k) - x, min(self.height, r1 * k) - y
 
     def _cut(
-        self, seq: int, image: np.ndarray, blocks: tuple[int, int, int, int], head: Face | None
+        self,
+        seq: int,
+        image: np.ndarray,
+        blocks: tuple[int, int, int, int],
+        head: Face | None,
+        over: bool = False,
     ) -> Refresh:
         x, y, w, h = self._area(blocks)
         part = image[y : y + h, x : x + w]
@@ -309,7 +379,7 @@ class RefreshMeter:
         ok, data = cv2.imencode(".webp", part, [cv2.IMWRITE_WEBP_QUALITY, QUALITY])
         if not ok:
             raise RuntimeError("WebP encoding failed")
-        packet = Refresh(seq, x, y, w, h, "webp", data.tobytes())
+        packet = Refresh(seq, x, y, w, h, "webp", data.tobytes(), int(over))
         self._shown = [s for s in self._shown if not _overlap(s.blocks, blocks)]
         self._shown.append(_Shown(packet, blocks, head))
         self._show(packet)
@@ -332,7 +402,7 @@ class RefreshMeter:
         if x1 <= x0 or y1 <= y0:
             return
         image = None if packet.clears else decode_image(packet.data, "refresh")  # as received
-        self.layer.add(packet.seq, x0, y0, x1 - x0, y1 - y0, image)
+        self.layer.add(packet.seq, x0, y0, x1 - x0, y1 - y0, image, bool(packet.over))
         self.layer.due(packet.seq)
 
 
@@ -356,6 +426,15 @@ def _moved(a: Face, b: Face) -> bool:
     """Whether the face moved or changed its width by more than STILL of its width."""
     reach = STILL * max(a[2], b[2])
     return bool(np.hypot(a[0] - b[0], a[1] - b[1]) > reach or abs(a[2] - b[2]) > reach)
+
+
+def _iou(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:
+    """Intersection over union of two block boxes (column, row, end column, end row)."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    both = max(0, w) * max(0, h)
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - both
+    return both / union if union else 1.0
 
 
 def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:

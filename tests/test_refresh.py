@@ -32,6 +32,10 @@ def test_a_refresh_and_a_clear_round_trip() -> None:
     assert again.data == image and not again.clears
     cleared = decode(bytes(Refresh(13, 30, 40, 16, 12, "", b"")))
     assert isinstance(cleared, Refresh) and cleared.clears and bytes(cleared)[0] == 0x2C
+    # Shown over the face: an eighth field, 1; under it the wire has seven, as before it.
+    over = Refresh(14, 30, 40, 16, 12, "webp", image, over=1)
+    assert decode(bytes(over)).over == 1 and decode(bytes(shown)).over == 0
+    assert len(bytes(over)) == len(bytes(shown)) + 1
 
 
 @pytest.mark.parametrize(
@@ -42,6 +46,7 @@ def test_a_refresh_and_a_clear_round_trip() -> None:
         ((1, 0, 0, 8, 8, "webp", b""), "Refresh.data: must not be empty"),
         ((1, 4096, 0, 8, 8, "", b""), "Refresh.x"),
         ((1, 0, 0, 0, 8, "", b""), "Refresh.width"),
+        ((1, 0, 0, 8, 8, "", b"", 2), "Refresh.over"),
     ],
 )
 def test_a_bad_refresh_is_refused(fields: tuple, message: str) -> None:
@@ -68,6 +73,32 @@ def test_the_layer_shows_refreshes_from_their_frame_and_replaces_or_clears_them(
     assert len(layer) == 0 and np.array_equal(layer.over(grey.copy()), grey)
     with pytest.raises(ValueError, match="outside the picture"):
         layer.add(8, 60, 0, 8, 8, None)
+    # One shown over the face goes on top of the drawn face, not under it.
+    layer.add(9, 10, 10, 20, 20, white, on_top=True)
+    layer.due(9)
+    assert np.array_equal(layer.over(grey.copy()), grey)
+    assert layer.on_top(grey.copy())[20, 20].tolist() == [255, 255, 255]
+
+
+def test_a_talking_head_with_nothing_in_front_of_it_sends_nothing_over_the_face() -> None:
+    """The bundled clip (talking, blinking, turning a little, nothing held up): no refresh is
+    sent over its face, where it would freeze a piece of it."""
+    from facewire.loopback import Loopback
+    from facewire.protocol.packets import decode
+    from facewire.sender.capture import CapturedFrame, VideoSource, demo_clip_path
+    from facewire.sender.encoder import FaceEncoder
+
+    with VideoSource(demo_clip_path()) as video:
+        frames = [f.image for f in video.frames(limit=150)]
+    encoder = FaceEncoder(640, 480, 30.0)
+    over = 0
+    with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as call:
+        for i, frame in enumerate(frames):
+            for data in call.send(CapturedFrame(i, frame, i * 33_333)):
+                packet = decode(data)
+                over += isinstance(packet, Refresh) and packet.over == 1
+    assert encoder.refresh is not None and encoder.refresh.occlusion is not None
+    assert over == 0
 
 
 @pytest.fixture(scope="module")
@@ -76,16 +107,18 @@ def photo() -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    ("x", "y"), [(215, 120), (206, 45)], ids=["beside-the-chin", "by-the-cheek"]
+    ("x", "y"),
+    [(215, 120), (206, 45), (165, 105)],
+    ids=["beside-the-chin", "by-the-cheek", "over-the-jaw"],
 )
 def test_an_object_held_beside_the_face_is_shown_within_a_second_and_goes_with_it(
     photo: np.ndarray, x: int, y: int
 ) -> None:
-    """A striped object (the photo's flag) is held beside the chin, or by the cheek (where
-    the warp carries the picture with the head), from frame 10 to 39 over a still person:
-    within 30 frames (1 s) of its coming the receiver shows it, and within 30 of its going
-    the scene is back, given back to the model (no image: a few bytes). Before it came
-    nothing was sent."""
+    """A striped object (the photo's flag) is held beside the chin, by the cheek (where the
+    warp carries the picture with the head), or over the jaw (half on the face, which is
+    drawn over everything else), from frame 10 to 39 over a still person: within 30 frames
+    (1 s) of its coming the receiver shows it, and within 30 of its going the scene is back,
+    given back to the model (no image: a few bytes). Before it came nothing was sent."""
     from facewire.loopback import Loopback
     from facewire.sender.capture import CapturedFrame
     from facewire.sender.encoder import FaceEncoder
