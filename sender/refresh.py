@@ -231,9 +231,13 @@ class RefreshMeter:
         replace = can_send and size >= MIN_BLOCKS
         if under and not (replace and model_fails[r0:r1, c0:c1].any()):
             packets = [self._clear(seq, s) for s in under]
-        elif replace and not (head is not None and any(s.head is None for s in under)):
+        elif replace and not (
+            (head is not None and any(s.head is None for s in under))
+            or any(s.packet.over and _overlap(s.blocks, (c0, r0, c1, r1)) for s in self._shown)
+        ):
             # (One that goes with the head's stillness takes no other's place: on Claire
-            # one of her jaw's, kept to the clip's end before, went with a lock of her hair.)
+            # one of her jaw's, kept to the clip's end before, went with a lock of her hair.
+            # Nor does one take the place of what is shown over the face.)
             packets = [self._cut(seq, image, (c0, r0, c1, r1), head)]
         else:
             return []
