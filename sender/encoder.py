@@ -323,12 +323,9 @@ class FaceEncoder:
             meta["rem_patch_size"] = patch_side
         self._patches = []
         self.session = SessionModel(mesh, texture, background)
+        shown_texture = decode_image(texture_webp, "snapshot texture")  # as the receiver does
         if self.use_synthesis and not isinstance(self.tracker, MarkerFaceTracker):
-            self.synthesis = FaceSynthesis(
-                mesh,
-                decode_image(texture_webp, "snapshot texture"),  # as the receiver does
-                float(np.ptp(points[:, 0])),
-            )
+            self.synthesis = FaceSynthesis(mesh, shown_texture, float(np.ptp(points[:, 0])))
         if isinstance(self.tracker, MarkerFaceTracker):
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
@@ -382,7 +379,7 @@ class FaceEncoder:
         if self.use_refresh:
             self.refresh = RefreshMeter(
                 shown, at_snapshot, shown_people, self.fps, self.refresh_kbps,
-                self._occlusion(mesh, texture_webp),
+                self._occlusion(mesh, shown_texture),
             )  # fmt: skip
         self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None
@@ -411,12 +408,12 @@ class FaceEncoder:
             meta=meta,
         )
 
-    def _occlusion(self, mesh: FaceMesh, texture_webp: bytes) -> FaceOcclusion | None:
-        """What looks for a hand in front of the face (sender/occlusion.py), leaving out the
-        regions the REM patches show as they are; None without them."""
+    def _occlusion(self, mesh: FaceMesh, texture: np.ndarray) -> FaceOcclusion | None:
+        """What looks for a hand in front of the face (sender/occlusion.py) on ``texture``,
+        the snapshot's as the receiver decoded it, leaving out the regions the REM patches
+        show as they are; None without them."""
         if self.rem is None:
             return None
-        texture = decode_image(texture_webp, "snapshot texture")  # as the receiver does
         left_out = np.zeros(texture.shape[:2], bool)
         for box in self.rem.layout.boxes.values():
             left_out[box.texture_slices] = True
