@@ -92,7 +92,9 @@ def record(clip: Path | None, size: tuple[int, int], frames: int, out: Path) -> 
 
     try:
         source = scaled(stamped(), size)
-        encoder = FaceEncoder(*size, fps, scenes=False)  # as facewire/room.py's
+        # One session: the replay serves one snapshot and makes its own heartbeats, so a new
+        # scene's (which facewire/room.py's sender would start) could not be replayed.
+        encoder = FaceEncoder(*size, fps, scenes=False)
         snapshot, buffered = start_session(encoder, source, fps, str(clip))
         recorder = _Recorder(fps, current)
         recorder.set_snapshot(snapshot)
