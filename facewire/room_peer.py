@@ -578,7 +578,9 @@ class RoomReceiver:
             if joining.asked_keyframe:
                 figures.keyframe_requests += 1
                 peer.last_request = time.monotonic()  # its keyframe is on its way
-            self.notify(f"{peer.name}: a new scene from frame {peer.snapshot.seq}")
+            from facewire.receiver.decoder import new_scene_news
+
+            self.notify(f"{peer.name}: {new_scene_news(peer.snapshot)}")
         else:
             logger.info("%s's new scene: %s", peer.name, exc)
             self._drop(peer, f"its new scene cannot be shown: {exc}")

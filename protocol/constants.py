@@ -188,6 +188,9 @@ DRAFT_PATH_WAIT_S: Final = 1.0
 #: call rejoins it in the same call; any other session is a restarted sender's (docs/protocol.md
 #: 8.9).
 CALL: Final = "call"
+#: Snapshot meta of a scene that shows no face (docs/protocol.md 8.9): 0. Its texture is empty
+#: and its reference puts the face outside the frame, so every receiver draws the scene alone.
+FACE: Final = "face"
 #: ReceiverStats name, sent instead of "ready" when a receiver has joined a new scene's
 #: session of its call (with SNAPSHOT_MS).
 SCENE: Final = "scene"

@@ -39,7 +39,7 @@ from facewire.models.rig import Rig, load_rig
 from facewire.models.surround import SurroundWarp
 from facewire.models.wires import WireDeformer
 from facewire.protocol.channels import ChannelDecoder, ChannelSpec, FrameValues
-from facewire.protocol.constants import MAX_IMAGE_SIDE
+from facewire.protocol.constants import FACE, MAX_IMAGE_SIDE
 from facewire.protocol.images import ImageError, decode_image
 from facewire.protocol.packets import (
     DeltaFrame,
@@ -71,11 +71,15 @@ FEATHER = 0.06
 MAX_VERTEX_PX = 2.0**20
 
 
-def _image(data: bytes, what: str, fallback_size: tuple[int, int]) -> np.ndarray:
+def _image(
+    data: bytes, what: str, fallback_size: tuple[int, int], wanted: bool = True
+) -> np.ndarray:
     """Decode a snapshot image after checking its header (size limits before any pixel is
-    decoded); an empty image becomes flat grey of ``fallback_size`` (height, width)."""
+    decoded); an empty image becomes flat grey of ``fallback_size`` (height, width), said
+    where the image is ``wanted``."""
     if not data:
-        logger.warning("snapshot has no %s: showing grey", what)
+        if wanted:
+            logger.warning("snapshot has no %s: showing grey", what)
         return np.full((*fallback_size, 3), MISSING_IMAGE_GREY, np.uint8)
     try:
         return decode_image(data, f"snapshot {what}")
@@ -86,7 +90,12 @@ def _image(data: bytes, what: str, fallback_size: tuple[int, int]) -> np.ndarray
 def _images(snapshot: Snapshot) -> tuple[np.ndarray, np.ndarray]:
     """The snapshot's texture and background, at the sizes the session draws them: a draft's
     smaller images are scaled up (docs/protocol.md 8.7)."""
-    texture = _image(snapshot.texture, "texture", (MISSING_TEXTURE_SIZE, MISSING_TEXTURE_SIZE))
+    texture = _image(
+        snapshot.texture,
+        "texture",
+        (MISSING_TEXTURE_SIZE, MISSING_TEXTURE_SIZE),
+        wanted=shows_face(snapshot),  # a scene with no face has none
+    )
     side = snapshot.meta.get("texture_size")
     if isinstance(side, int) and 0 < side <= MAX_IMAGE_SIDE and texture.shape[:2] != (side, side):
         texture = cv2.resize(texture, (side, side), interpolation=cv2.INTER_LINEAR)
@@ -94,6 +103,18 @@ def _images(snapshot: Snapshot) -> tuple[np.ndarray, np.ndarray]:
     if background.shape[:2] != (snapshot.height, snapshot.width):
         background = cv2.resize(background, (snapshot.width, snapshot.height))
     return texture, background
+
+
+def shows_face(snapshot: Snapshot) -> bool:
+    """Whether ``snapshot``'s scene shows a face (docs/protocol.md 8.9: one that shows none
+    puts its face outside the frame, and has no texture)."""
+    return snapshot.meta.get(FACE) != 0
+
+
+def new_scene_news(snapshot: Snapshot) -> str:
+    """What a receiver says when it draws a new scene of its call from ``snapshot``."""
+    alone = "" if shows_face(snapshot) else " (no face in it)"
+    return f"a new scene from frame {snapshot.seq}{alone}"
 
 
 class FaceDecoder:

@@ -27,7 +27,7 @@ from facewire.protocol.packets import AudioFrame, Bye, DeltaFrame, KeyFrame, Pac
 from facewire.protocol.pauses import settle
 from facewire.protocol.transport import ReceiverEndpoint, RejoinNeeded, TransportError
 from facewire.receiver.audio import CallSound
-from facewire.receiver.decoder import FaceDecoder, SnapshotError
+from facewire.receiver.decoder import FaceDecoder, SnapshotError, new_scene_news
 from facewire.receiver.interpolation import Painter
 from facewire.receiver.lateness import LateFrames
 from facewire.receiver.playout import Playout, PlayoutSettings, Record, Show, Step, make_playout
@@ -289,7 +289,7 @@ def run_receiver(
                     )
                 else:
                     report.scenes += 1
-                    notify(f"a new scene from frame {snapshot.seq}")
+                    notify(new_scene_news(snapshot))
                 report.keyframe_interval = snapshot.keyframe_interval
                 out = _Output(recorder, sink, snapshot.session_id, report)
                 begins = record_from is not None and scene is None and report.sessions == 1

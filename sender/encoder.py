@@ -35,6 +35,8 @@ from facewire.models.face_channels import (
     DEFAULT_ERROR_PX,
     HYSTERESIS,
     LIPS,
+    POSE_ROTATION,
+    POSE_SCALE,
     POSE_TRANSLATION,
     WIRE,
     WireBasis,
@@ -53,7 +55,7 @@ from facewire.models.rig import Rig, load_rig
 from facewire.models.wires import WireDeformer
 from facewire.protocol import mesh_code
 from facewire.protocol.channels import ChannelEncoder, ChannelSpec
-from facewire.protocol.constants import CALL, UINT32_MAX
+from facewire.protocol.constants import CALL, FACE, UINT32_MAX
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import DeltaFrame, KeyFrame, Refresh, RemPatch, Snapshot
 from facewire.protocol.quant import dequantise, quantise
@@ -69,7 +71,15 @@ from facewire.sender.occlusion import FaceOcclusion
 from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from facewire.sender.refresh import REFRESH_KBPS, RefreshMeter
 from facewire.sender.rem import RemEncoder
-from facewire.sender.scene_cut import BetterView, SceneCut, another_face, face_box
+from facewire.sender.scene_cut import (
+    FACE_FOUND_FRAMES,
+    FACE_LOST_S,
+    NO_FACE_AFTER_S,
+    BetterView,
+    SceneCut,
+    another_face,
+    face_box,
+)
 from facewire.sender.synthesis import FaceSynthesis
 from facewire.sender.texture import UvRasteriser
 
@@ -255,6 +265,13 @@ class FaceEncoder:
         self._better = False
         self._new_scene = False  # a cut or another face seen, and no session from it yet
         self._left: tuple[np.ndarray, np.ndarray] | None = None  # the scene before the cut
+        self._cut_at = 0  # the frame of the last cut
+        #: Whether the session's scene shows no face (:meth:`start_scene`): its face is kept
+        #: outside the frame, and a face that comes begins a session of its own.
+        self.faceless = False
+        self._untracked_run = 0  # frames running without the session's face
+        self._found_run = 0  # frames running with a face, in a session without one
+        self._specs: list[ChannelSpec] = []
 
     def start(
         self,
@@ -354,6 +371,8 @@ class FaceEncoder:
             ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
             ChannelSpec(BODY, BODY_SIZE, self.steps[BODY]),
         ]
+        self._specs = specs
+        self.faceless, self._untracked_run = False, 0
         people = person_mask(frame.image)
         outline = points[self.canonical.outline, :2]
         self.camera = CameraTracker(frame.image, outline, people)
@@ -435,7 +454,7 @@ class FaceEncoder:
             self._new_scene, self._left = False, None
             return False
         if cut and not self._new_scene:
-            self._left = self.scene_cut.before
+            self._left, self._cut_at = self.scene_cut.before, frame.index
         self._new_scene |= cut
         self._better &= not cut  # a cut's new face is looked for over the whole frame
         return self._new_scene
@@ -447,10 +466,13 @@ class FaceEncoder:
 
     def start_scene(self, frame: CapturedFrame, fit_now: bool = True) -> Snapshot | None:
         """The snapshot of a new session from ``frame``, which follows on this one (a new
-        scene of the call), or None where the frame shows no face (the old session goes on:
-        its receiver keeps the old picture, as no face is tracked; try again on a later frame)
-        or, after a face jump and no cut, the old session's face back where it was (the old
-        session goes on, and no new scene is looked for). ``fit_now``: as :meth:`start`'s.
+        scene of the call). Where the frame shows no face: a session without one
+        (:meth:`_start_without_face`) once the new scene has shown none for NO_FACE_AFTER_S
+        after its cut, or the face has been lost for FACE_LOST_S; before that None (the old
+        session goes on, its receiver keeps the old picture; try again on a later frame).
+        None too where, after a face jump and no cut, the old session's face is back where it
+        was (the old session goes on, and no new scene is looked for). ``fit_now``: as
+        :meth:`start`'s.
         """
         if isinstance(self.tracker, LandmarkTracker) and not self._better:
             # It would look where the old face was: look over the whole frame.
@@ -461,6 +483,8 @@ class FaceEncoder:
         self.call_id = self.call_id or old
         self.session_id = secrets.randbelow(UINT32_MAX) + 1
         snapshot = self.start(frame, call=self.call_id, fit_now=fit_now)
+        if snapshot is None and self._no_face_for_long(frame):
+            snapshot = self._start_without_face(frame, self.call_id)
         if snapshot is None:
             self.session_id = old
             return None
@@ -469,6 +493,74 @@ class FaceEncoder:
         logger.info("another scene at frame %d: session %d of call %d", frame.index,
                     self.session_id, self.call_id)  # fmt: skip
         return snapshot
+
+    def _no_face_for_long(self, frame: CapturedFrame) -> bool:
+        """Whether a new scene that shows no face in ``frame`` gets a session without one: its
+        cut was NO_FACE_AFTER_S ago, or no cut came and the face is lost (FACE_LOST_S)."""
+        if self.faceless:
+            return self._left is not None and frame.index - self._cut_at >= round(
+                NO_FACE_AFTER_S * self.fps
+            )  # one without a face cut to another
+        if self._left is None:
+            return self._untracked_run >= round(FACE_LOST_S * self.fps)
+        return frame.index - self._cut_at >= round(NO_FACE_AFTER_S * self.fps)
+
+    def _start_without_face(self, frame: CapturedFrame, call: int) -> Snapshot:
+        """A session of a scene that shows no face (docs/protocol.md 8.9): its snapshot frame
+        is ``frame``, drawn alone, with the camera's motion and the refreshes over it. Its
+        face, the last session's, is kept outside the frame (every receiver draws the scene
+        alone, whatever it knows of this), and its texture is empty. A face that comes
+        begins a session of it (:meth:`analyse`)."""
+        assert self.session is not None and self._last_values is not None, "start() first"
+        values = {name: np.zeros_like(v) for name, v in self._last_values.items()}
+        for name in (POSE_ROTATION, POSE_SCALE, WIRE):
+            values[name] = self._last_values[name].copy()
+        # Its right edge a frame's width left of the frame: no part of it drawn, nor of what
+        # is carried with it (the body below it, models/surround.py).
+        right = float(self.rebuilt_vertices(values)[:, 0].max())
+        values[POSE_TRANSLATION][0] -= int(
+            np.ceil((right + self.width) / self.steps[POSE_TRANSLATION])
+        )
+        values[POSE_TRANSLATION][1] = round(self.height / 2 / self.steps[POSE_TRANSLATION])
+        background = frame.image.copy()
+        background_webp = _webp(background, BACKGROUND_QUALITY)
+        self.faceless, self._found_run = True, 0
+        self.session = SessionModel(self.session.mesh, self.session.texture, background)
+        self.rem = self.synthesis = self.edge = self.body = self.better_view = None
+        self._edge_smoother = self._smoother = None
+        self._face_box = self._jumped_from = None
+        self._camera_shift, self._body_shift = np.zeros(CAMERA_SIZE), np.zeros(BODY_SIZE)
+        self._patches = []
+        interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
+        self._channels = ChannelEncoder(
+            self._specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
+        )
+        self._last_values = values
+        self.intended = None
+        outline = self.rebuilt_vertices(values)[self.canonical.outline]
+        self.camera = CameraTracker(frame.image, outline[:, :2], person_mask(frame.image))
+        self.refresh = None
+        if self.use_refresh:
+            shown = decode_image(background_webp, "snapshot background")
+            self.refresh = RefreshMeter(
+                shown, outline, person_mask(shown), self.fps, self.refresh_kbps
+            )
+        logger.info("frame %d shows no face: a session of the scene alone", frame.index)
+        return Snapshot(
+            session_id=self.session_id,
+            seq=frame.index,
+            width=self.width,
+            height=self.height,
+            fps=self.fps,
+            vertices=self.session.mesh.vertices,
+            texture=b"",
+            background=background_webp,
+            channels=[(s.name, s.size, s.step) for s in self._specs],
+            rig_hash=rig_hash(),
+            keyframe_interval=interval,
+            reference=[tuple(int(v) for v in values[s.name]) for s in self._specs],
+            meta={mesh_code.VERTEX_STEP: mesh_code.STEP_CM, CALL: call, FACE: 0},
+        )
 
     def _own_face_back(self, frame: CapturedFrame) -> bool:
         """Whether ``frame`` shows the session's own face where it was before a face jump
@@ -493,6 +585,12 @@ class FaceEncoder:
         # The scene's and the body's motion need no face: followed on another thread while
         # the tracker looks for it (OpenCV lets the GIL go), 2-3 ms of a 1280x720 frame.
         beside = None if self.camera is None else self._beside.submit(self._motion, image)
+        if self.faceless:
+            self._look_for_face(image)
+            assert beside is not None and self.camera is not None
+            homography = self.camera.settle(image.shape, None, beside.result()[0])
+            self._camera_shift = corners_from_homography(homography, self.width, self.height)
+            return None
         face = self._face(image)
         followed, body = (None, None) if beside is None else beside.result()
         if face is None:
@@ -508,6 +606,15 @@ class FaceEncoder:
                 own = np.linalg.solve(homography, body)
                 self._body_shift = corners_from_homography(own, self.width, self.height)
         return pose, params
+
+    def _look_for_face(self, image: np.ndarray) -> None:
+        """In a session without a face: a face tracked FACE_FOUND_FRAMES running is a new
+        scene, begun with the next frame (:meth:`start_scene`)."""
+        found = self.tracker.track(image)
+        self._found_run = self._found_run + 1 if isinstance(found, Landmarks) else 0
+        if self._found_run >= FACE_FOUND_FRAMES:
+            self._new_scene, self._left = True, None
+            logger.info("a face in the scene without one: a session of it")
 
     def _motion(
         self, image: np.ndarray
@@ -622,9 +729,20 @@ class FaceEncoder:
         assert self._channels is not None and self._last_values is not None, "start() first"
         sent = self._last_values
         vertices = None
-        if result is None:
+        if result is None and self.faceless:
+            # The scene alone: its camera's motion, and the refreshes over it.
+            values = dict(sent)
+            values[CAMERA] = self._quantise_own(CAMERA, self._camera_shift, sent[CAMERA], None)
+            vertices = self.rebuilt_vertices(values)
+            motion = self._homographies(values)
+            self._last_values = values
+        elif result is None:
             self.frames_untracked += 1  # repeat the last values
+            self._untracked_run += 1
+            if self.scene_cut is not None and self._untracked_run >= round(FACE_LOST_S * self.fps):
+                self._new_scene = True  # the face has gone: the scene alone from now on
         else:
+            self._untracked_run = 0
             floats = self.channel_values(*result, self.points)
             if self._smoother is not None:
                 # Frame numbers, not capture times, time the filter: a file read faster than

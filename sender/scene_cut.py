@@ -52,6 +52,16 @@ BETTER_AFTER_S = 1.0
 GROWN = 1.5
 MOVED = 1.0
 
+#: A scene with no face to draw gets a session without one (its face kept outside the frame,
+#: the scene drawn from its own snapshot frame): a new scene that shows no face NO_FACE_AFTER_S
+#: after its cut (a shot of a room, a slide; a flash or a hand over the lens is over by then),
+#: or a face lost for FACE_LOST_S (the person left, the camera turned away: the face would be
+#: drawn where it was, over the scene as it was). In such a session a face tracked in
+#: FACE_FOUND_FRAMES frames running begins a session of it.
+NO_FACE_AFTER_S = 0.3
+FACE_LOST_S = 1.0
+FACE_FOUND_FRAMES = 5
+
 #: A frame's colour histogram and grey thumbnail.
 Features = tuple[np.ndarray, np.ndarray]
 

@@ -1,4 +1,5 @@
-"""A clip with a cut: the bundled clip, then another shot (a photographed face on a wall)."""
+"""A clip with a cut: the bundled clip, then another shot (a photographed face on a wall, or a
+slide with no face on it)."""
 
 from __future__ import annotations
 
@@ -28,6 +29,27 @@ def other_scene(count: int, size: tuple[int, int] = (640, 480)) -> list[np.ndarr
     m[:, 2] += (width / 2 - 210, height / 2 - 210)
     cv2.warpAffine(face, m, size, dst=canvas, borderMode=cv2.BORDER_TRANSPARENT)
     rng = np.random.default_rng(5)
+    noisy = [canvas.astype(np.int16) + rng.integers(-2, 3, canvas.shape) for _ in range(count)]
+    return [np.clip(f, 0, 255).astype(np.uint8) for f in noisy]
+
+
+def slide(count: int, size: tuple[int, int] = (640, 480)) -> list[np.ndarray]:
+    """A shot with no face: a slide of boxes and lines of text, the camera's noise on it."""
+    width, height = size
+    canvas = np.full((height, width, 3), (235, 240, 238), np.uint8)
+    cv2.rectangle(canvas, (0, 0), (width, height // 6), (120, 60, 20), -1)
+    cv2.putText(canvas, "Quarterly figures", (width // 20, height // 9),
+                cv2.FONT_HERSHEY_DUPLEX, height / 400, (255, 255, 255), 2)  # fmt: skip
+    for k in range(6):
+        y = height // 4 + k * height // 10
+        line = f"- item {k + 1}: {17 * (k + 3)} units, up {k + 2} %"
+        cv2.putText(canvas, line, (width // 12, y), cv2.FONT_HERSHEY_SIMPLEX, height / 700,
+                    (40, 40, 40), 1)  # fmt: skip
+    for k, colour in enumerate([(60, 140, 220), (80, 180, 90), (200, 120, 60)]):
+        x = width * 2 // 3 + k * width // 12
+        cv2.rectangle(canvas, (x, height * (8 - 2 * k) // 10), (x + width // 16, height * 9 // 10),
+                      colour, -1)  # fmt: skip
+    rng = np.random.default_rng(7)
     noisy = [canvas.astype(np.int16) + rng.integers(-2, 3, canvas.shape) for _ in range(count)]
     return [np.clip(f, 0, 255).astype(np.uint8) for f in noisy]
 

@@ -1,0 +1,159 @@
+"""A scene with no face: a cut to a slide, a person who leaves. The sender starts a session of
+the scene alone, and one of the face when a face comes; the receiver draws the scene, never
+a face over it."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import cv2
+import numpy as np
+import pytest
+
+from facewire.cli import main
+from facewire.loopback import Loopback
+from facewire.protocol.constants import FACE
+from facewire.protocol.packets import Snapshot
+from facewire.receiver.decoder import FaceDecoder, shows_face
+from facewire.sender.capture import CapturedFrame
+from facewire.sender.encoder import FaceEncoder
+from facewire.sender.scene_cut import FACE_FOUND_FRAMES, FACE_LOST_S, NO_FACE_AFTER_S
+from tests.cut_clip import bundled, off, slide
+
+FPS = 30.0
+#: Frames of the bundled clip before the cut, of the slide, and of the bundled clip again.
+BEFORE, SLIDE, AGAIN = 30, 45, 30
+
+
+def _cut_to_slide_and_back() -> list[np.ndarray]:
+    frames = bundled(BEFORE + AGAIN)
+    return frames[:BEFORE] + slide(SLIDE) + frames[BEFORE:]
+
+
+def _call(frames: list[np.ndarray]) -> tuple[list[np.ndarray], list[Snapshot], FaceEncoder]:
+    """Pictures of a loopback call on ``frames``, the snapshots of its new scenes as the
+    receiver decoded them, and the encoder."""
+    encoder = FaceEncoder(640, 480, FPS)
+    pictures, snapshots = [], []
+    with Loopback(encoder, CapturedFrame(0, frames[0], 0)) as both:
+        for i, image in enumerate(frames):
+            scenes = both.scenes
+            both.step(CapturedFrame(i, image, round(i * 1e6 / FPS)))
+            if both.scenes > scenes:
+                snapshots.append(both.snapshot)
+            pictures.append(both.picture())
+    return pictures, snapshots, encoder
+
+
+@pytest.fixture(scope="module")
+def slide_call() -> tuple[list[np.ndarray], list[np.ndarray], list[Snapshot], FaceEncoder]:
+    frames = _cut_to_slide_and_back()
+    return (frames, *_call(frames))
+
+
+def test_a_cut_to_a_slide_shows_the_slide_and_no_face(slide_call: tuple) -> None:
+    frames, pictures, snapshots, _ = slide_call
+    assert len(snapshots) == 2  # the slide, then the face again
+    alone = snapshots[0]
+    assert not shows_face(alone) and alone.meta[FACE] == 0 and alone.texture == b""
+    assert BEFORE <= alone.seq <= BEFORE + round(NO_FACE_AFTER_S * FPS) + 1
+    # From its snapshot frame to the next cut the slide is drawn, with no face on it.
+    for i in range(alone.seq, BEFORE + SLIDE):
+        assert off(pictures[i], frames[i]) < 3.0, i
+    # Before it the old picture stays (the old scene's last one, not a face over the slide).
+    for i in range(BEFORE, alone.seq):
+        assert off(pictures[i], pictures[BEFORE - 1]) < 2.0, i
+
+
+def test_a_face_after_the_slide_begins_a_session_of_it(slide_call: tuple) -> None:
+    frames, pictures, snapshots, encoder = slide_call
+    face = snapshots[1]
+    assert shows_face(face) and face.texture
+    assert BEFORE + SLIDE <= face.seq <= BEFORE + SLIDE + round(NO_FACE_AFTER_S * FPS) + 1
+    assert not encoder.faceless
+    for i in range(face.seq, face.seq + 10):
+        assert off(pictures[i], frames[i]) < 6.0, i
+
+
+def test_the_scene_alone_is_drawn_exactly_from_its_snapshot(slide_call: tuple) -> None:
+    """Its face is outside the frame: the snapshot frame's values draw the background itself,
+    and no texture is asked for (a receiver would say it shows grey)."""
+    _, _, snapshots, _ = slide_call
+    decoder = FaceDecoder(snapshots[0])
+    try:
+        picture = decoder.reconstruct(decoder.reference)
+        assert off(picture, decoder.background) < 0.5
+    finally:
+        decoder.close()
+
+
+def test_no_texture_is_said_missing_for_a_scene_without_a_face(
+    slide_call: tuple, caplog: pytest.LogCaptureFixture
+) -> None:
+    _, _, snapshots, _ = slide_call
+    with caplog.at_level(logging.WARNING, logger="facewire.receiver.decoder"):
+        FaceDecoder(snapshots[0]).close()
+    assert "no texture" not in caplog.text
+
+
+def test_a_person_who_leaves_is_no_face_left_over_the_scene() -> None:
+    """The face hidden for longer than FACE_LOST_S (the person left the room, or the camera
+    turned away): a session of the scene alone, then one of the face when it is back."""
+    frames = bundled(30 + 45 + 30)
+    gone = range(30, 75)
+    for i in gone:
+        cv2.ellipse(frames[i], (330, 230), (140, 190), 0, 0, 360, (90, 120, 160), -1)
+    pictures, snapshots, encoder = _call(frames)
+    assert [shows_face(s) for s in snapshots] == [False, True]
+    lost = round(FACE_LOST_S * FPS)
+    assert gone[0] + lost - 1 <= snapshots[0].seq <= gone[0] + lost + 1
+    for i in range(snapshots[0].seq, gone[-1] + 1):
+        assert off(pictures[i], frames[i]) < 3.0, i  # the hiding ellipse, no face drawn
+    assert gone[-1] < snapshots[1].seq <= gone[-1] + FACE_FOUND_FRAMES + 2
+    assert off(pictures[-1], frames[-1]) < 12.0
+    assert encoder.frames_untracked == lost  # until then, the face held where it was
+
+
+def test_a_face_hidden_for_a_moment_stays_in_its_session() -> None:
+    frames = bundled(60)
+    for i in range(20, 20 + round(FACE_LOST_S * FPS) // 2):
+        cv2.ellipse(frames[i], (330, 230), (140, 190), 0, 0, 360, (90, 120, 160), -1)
+    _, snapshots, _ = _call(frames)
+    assert snapshots == []
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[np.ndarray], list, dict]:
+    """``facewire demo`` (two processes, ZeroMQ on loopback, EGL) on a cut to a slide and
+    back."""
+    out = tmp_path_factory.mktemp("faceless")
+    frames = _cut_to_slide_and_back()
+    clip = out / "cut.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), FPS, (640, 480))
+    for image in frames:
+        writer.write(image)
+    writer.release()
+    args = ["demo", "--input", str(clip), "--output", str(out / "out.mp4"), "--no-sound"]
+    args += ["--every-frame", "--stats", str(out / "stats.json")]
+    assert main(args) == 0
+    rebuilt, inputs = [], []
+    for path, into in ((out / "out.mp4", rebuilt), (clip, inputs)):
+        capture = cv2.VideoCapture(str(path))
+        while (read := capture.read())[0]:
+            into.append(read[1])
+    return inputs, rebuilt, json.loads((out / "stats.json").read_text())
+
+
+def test_a_call_shows_the_slide_then_the_face_again(demo: tuple) -> None:
+    inputs, rebuilt, stats = demo
+    assert stats["ended_by"] == "bye" and stats["malformed"] == 0
+    assert stats["scenes"] == 2 and len(stats["scene_first_s"]) == 2
+    assert len(rebuilt) == len(inputs)
+    # Each scene comes within a second of its cut; until then the picture before it stays.
+    for cut in (BEFORE, BEFORE + SLIDE):
+        held = rebuilt[cut - 1]
+        new = [off(rebuilt[i], inputs[i]) < 6.0 for i in range(cut, cut + round(FPS))]
+        first = new.index(True)
+        assert all(off(rebuilt[i], held) < 2.0 for i in range(cut, cut + first))
+        assert all(new[first : first + 10])
