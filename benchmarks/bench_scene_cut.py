@@ -75,11 +75,13 @@ def main() -> None:
     print(f"{clip}: {len(inputs)} frames, cuts at {starts[1:]}; {stats['scenes']} scenes seen")
     print("| cut at frame | first picture after, s | frame SSIM from 1 s after the cut |")
     print("|---|---|---|")
-    firsts = stats["scene_first_s"]
-    for k, (start, end) in enumerate(zip(starts[1:], ends[1:], strict=True)):
+    # Each cut's scene: the first session begun between it and the next cut.
+    firsts = dict(zip(stats["scene_frames"], stats["scene_first_s"], strict=False))
+    for start, end in zip(starts[1:], ends[1:], strict=True):
         frames = range(start + round(fps), min(end, len(outputs)))
         score = np.mean([ssim(inputs[i], outputs[i]) for i in frames])
-        first = f"{firsts[k]:.2f}" if k < len(firsts) else "none"
+        seen = [firsts[f] for f in sorted(firsts) if start <= f < end]
+        first = f"{seen[0]:.2f}" if seen else "none"
         print(f"| {start} | {first} | {score:.3f} |")
     kbps = stats["kbps"]
     print(f"kbit/s: snapshot {kbps['snapshot']:.1f}, total {kbps['total']:.1f}")

@@ -196,6 +196,7 @@ def _call(
         # sessions after the first), and seconds from the capture of each one's first
         # frame to its first picture on the receiver's screen (one host: one clock).
         "scenes": sender.scenes,
+        "scene_frames": sender.scene_frames,
         "scene_first_s": [
             (shown - captured) / 1e6
             for captured, shown in zip(

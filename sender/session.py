@@ -63,9 +63,10 @@ class SenderReport:
     patches: int = 0  # REM patches handed to the link
     refreshes: int = 0  # refreshes of what the model misses (sender/refresh.py) handed to it
     keyframe_requests: int = 0
-    # Sessions started at a cut to another scene, and the capture time of each one's first
-    # frame (µs, this end's clock).
+    # Sessions started at a cut to another scene, and each one's first frame: its number and
+    # its capture time (µs, this end's clock).
     scenes: int = 0
+    scene_frames: list[int] = field(default_factory=list)
     scene_capture_us: list[int] = field(default_factory=list)
     busy_s: float = 0.0  # own processing time: track + encode + publish
     receiver_stats: dict[str, float] = field(default_factory=dict)  # the latest of each name
@@ -121,6 +122,7 @@ def run_sender(
             endpoint.heartbeat()
             scene.served = True
             report.scenes += 1
+            report.scene_frames.append(scene.frame.index)
             report.scene_capture_us.append(scene.frame.capture_us)
         if scene is not None and not scene.done():
             # The encoder is busy: nothing to send. The endpoint answers snapshot requests;
