@@ -97,6 +97,12 @@ SOURCE_PAD = 4
 #: difference of neighbouring lines further in, and by BORDER_STEP grey levels more.
 BORDER_MIN, BORDER_SHARE = 4, 64
 BORDER_RATIO, BORDER_STEP = 3.0, 15.0
+#: A black bar at the edge is border too, however deep (a letterbox; bowing's 15 blank lines
+#: above the picture, pulled down by the head as a black wedge above it when he bowed): the
+#: outermost lines, up to 1/BAR_SHARE of the side, whose median is under BAR_MEDIAN grey levels
+#: and three quarters under BAR_LEVEL (a few bright specks allowed: a tape's head-switching
+#: line). The lines just inside it are then looked at as above.
+BAR_MEDIAN, BAR_LEVEL, BAR_SHARE = 16.0, 32.0, 8
 
 
 def similarity_3d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -445,20 +451,25 @@ def _moved(image: np.ndarray, camera: np.ndarray, box: tuple[int, int, int, int]
 
 def frame_border(image: np.ndarray) -> tuple[int, int, int, int]:
     """(top, bottom, left, right): how many lines at each edge of ``image`` (h, w, 3) are a
-    border the camera adds, not the scene (BORDER_MIN and the others): the outermost lines up
-    to the last one in reach that differs from the next line in far more than neighbouring
-    lines further in do. A scene's own strong edge that close to the frame's counts too: it
-    is then those few lines that stand still while the scene moves."""
+    border the camera adds, not the scene (BORDER_MIN and the others): a black bar (BAR_MEDIAN
+    and the others), then the lines up to the last one in reach that differs from the next
+    line in far more than neighbouring lines further in do. A scene's own strong edge that
+    close to the frame's counts too: it is then those few lines that stand still while the
+    scene moves."""
     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
 
     def depth(lines: np.ndarray) -> int:  # (n, length), the outermost line first
+        median, upper = np.percentile(lines[: len(lines) // BAR_SHARE], (50, 75), axis=1)
+        dark = (median < BAR_MEDIAN) & (upper < BAR_LEVEL)
+        bar = int(np.argmin(dark)) if not dark.all() else len(dark)
+        lines = lines[bar:]
         reach = max(BORDER_MIN, len(lines) // BORDER_SHARE)
         if len(lines) < 3 * reach:
-            return 0
+            return bar
         steps = np.abs(np.diff(lines[: 3 * reach], axis=0)).mean(axis=1)  # line i to i + 1
         typical = float(np.median(steps[reach:]))
         jumps = np.flatnonzero(steps[:reach] > max(BORDER_RATIO * typical, typical + BORDER_STEP))
-        return int(jumps[-1]) + 1 if len(jumps) else 0
+        return bar + (int(jumps[-1]) + 1 if len(jumps) else 0)
 
     return depth(grey), depth(grey[::-1]), depth(grey.T), depth(grey.T[::-1])
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.models.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp
+from facewire.models.surround import FADE, HEAD_REACH, STILL_REACH, SurroundWarp, frame_border
 
 H, W = 360, 480
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
@@ -420,3 +420,18 @@ def test_a_capture_s_black_column_stays_at_the_frame_edge_when_the_camera_pans()
     # The border itself stays where the camera puts it.
     assert np.array_equal(got[:, :2], image[:, :2])
     assert np.array_equal(got[-1], image[-1])
+
+
+def test_a_black_bar_above_a_head_that_bows_stays_at_the_top_edge() -> None:
+    """Bowing's 16 blank lines above the picture (a tape's head-switching line bright in
+    them), the head's hair reaching into them: the head sinks 40 px, and the warp carried the
+    bar down with the hair, a black wedge above the head. The bar is the camera's border: it
+    stays at the top, and the scene or the hair shows below it."""
+    image, person, o = leaning_scene(top=10)
+    image[:16] = 0
+    image[11:14, 300:340] = 230
+    assert frame_border(image)[0] == 16
+    out = SurroundWarp(image, o, person).warp(o + [0.0, 40.0])
+    assert np.array_equal(out[:16], image[:16])
+    dark = cv2.cvtColor(out, cv2.COLOR_BGR2GRAY)[16:120, 180:300] < 20
+    assert dark.mean() < 0.01
