@@ -345,33 +345,11 @@ class FaceEncoder:
             self.synthesis = FaceSynthesis(mesh, shown_texture, float(np.ptp(points[:, 0])))
         if isinstance(self.tracker, MarkerFaceTracker):
             self.tracker.begin(mesh)  # markers are lifted onto this mesh from now on
-        self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
-        if fit_now:
-            self.wires.prepare_fit()
-        self.mouth = MouthOpening(mesh, self.rig)
-        self.rest_params = self.wires.rest_params()
-        self._projector = self.basis.projector(self.wires.matrix)
-        radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
-        #: The error budget this session's steps were chosen for, px (see error_px).
-        self.budget_px = max(
+        budget_px = max(
             self.error_px, TRACKER_RESOLUTION_SHARE * crop_from_points(points).pixel_size
         )
-        self.steps = channel_steps(radius, pose.scale, self.budget_px)
-        # The background may move twice the face's budget: at 0.5 px its estimate's noise
-        # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
-        self.steps[CAMERA] = camera_step(2 * self.budget_px)
-        self.steps[EDGE] = edge_step(self.budget_px)
-        self.steps[BODY] = body_step(self.budget_px)
-        specs = [
-            ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
-        ] + [
-            ChannelSpec(WIRE, self.basis.size, self.steps[WIRE]),
-            ChannelSpec(LIPS, LIPS_SIZE, self.steps[LIPS]),
-            ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
-            ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
-            ChannelSpec(BODY, BODY_SIZE, self.steps[BODY]),
-        ]
-        self._specs = specs
+        specs = self._face_model(mesh, pose, budget_px, fit_now)
+        assert self.wires is not None
         self.faceless, self._untracked_run = False, 0
         people = person_mask(frame.image)
         outline = points[self.canonical.outline, :2]
@@ -427,6 +405,37 @@ class FaceEncoder:
             meta=meta,
         )
 
+    def _face_model(
+        self, mesh: FaceMesh, pose: Pose, budget_px: float, fit_now: bool
+    ) -> list[ChannelSpec]:
+        """Set up the wires, the lips and the channels' steps of a session's ``mesh``, seen at
+        ``pose`` in its snapshot frame with an error budget of ``budget_px``; its channels."""
+        self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
+        if fit_now:
+            self.wires.prepare_fit()
+        self.mouth = MouthOpening(mesh, self.rig)
+        self.rest_params = self.wires.rest_params()
+        self._projector = self.basis.projector(self.wires.matrix)
+        radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
+        #: The error budget this session's steps were chosen for, px (see error_px).
+        self.budget_px = budget_px
+        self.steps = channel_steps(radius, pose.scale, budget_px)
+        # The background may move twice the face's budget: at 0.5 px its estimate's noise
+        # alone cost 0.3 kbit/s on a still studio camera (akiyo), at 1 px 0.15.
+        self.steps[CAMERA] = camera_step(2 * budget_px)
+        self.steps[EDGE] = edge_step(budget_px)
+        self.steps[BODY] = body_step(budget_px)
+        self._specs = [
+            ChannelSpec(name, len(v), self.steps[name]) for name, v in pose_channels(pose).items()
+        ] + [
+            ChannelSpec(WIRE, self.basis.size, self.steps[WIRE]),
+            ChannelSpec(LIPS, LIPS_SIZE, self.steps[LIPS]),
+            ChannelSpec(CAMERA, CAMERA_SIZE, self.steps[CAMERA]),
+            ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
+            ChannelSpec(BODY, BODY_SIZE, self.steps[BODY]),
+        ]
+        return self._specs
+
     def _occlusion(self, mesh: FaceMesh, texture: np.ndarray) -> FaceOcclusion | None:
         """What looks for a hand in front of the face (sender/occlusion.py) on ``texture``,
         the snapshot's as the receiver decoded it, leaving out the regions the REM patches
@@ -467,7 +476,7 @@ class FaceEncoder:
     def start_scene(self, frame: CapturedFrame, fit_now: bool = True) -> Snapshot | None:
         """The snapshot of a new session from ``frame``, which follows on this one (a new
         scene of the call). Where the frame shows no face: a session without one
-        (:meth:`_start_without_face`) once the new scene has shown none for NO_FACE_AFTER_S
+        (:meth:`start_without_face`) once the new scene has shown none for NO_FACE_AFTER_S
         after its cut, or the face has been lost for FACE_LOST_S; before that None (the old
         session goes on, its receiver keeps the old picture; try again on a later frame).
         None too where, after a face jump and no cut, the old session's face is back where it
@@ -483,8 +492,8 @@ class FaceEncoder:
         self.call_id = self.call_id or old
         self.session_id = secrets.randbelow(UINT32_MAX) + 1
         snapshot = self.start(frame, call=self.call_id, fit_now=fit_now)
-        if snapshot is None and self._no_face_for_long(frame):
-            snapshot = self._start_without_face(frame, self.call_id)
+        if snapshot is None and self.scenes_without_face and self._no_face_for_long(frame):
+            snapshot = self.start_without_face(frame, call=self.call_id)
         if snapshot is None:
             self.session_id = old
             return None
@@ -493,6 +502,12 @@ class FaceEncoder:
         logger.info("another scene at frame %d: session %d of call %d", frame.index,
                     self.session_id, self.call_id)  # fmt: skip
         return snapshot
+
+    @property
+    def scenes_without_face(self) -> bool:
+        """Whether a scene with no face gets a session (with the landmark tracker: markers
+        are looked for on a face)."""
+        return isinstance(self.tracker, LandmarkTracker)
 
     def _no_face_for_long(self, frame: CapturedFrame) -> bool:
         """Whether a new scene that shows no face in ``frame`` gets a session without one: its
@@ -505,13 +520,34 @@ class FaceEncoder:
             return self._untracked_run >= round(FACE_LOST_S * self.fps)
         return frame.index - self._cut_at >= round(NO_FACE_AFTER_S * self.fps)
 
-    def _start_without_face(self, frame: CapturedFrame, call: int) -> Snapshot:
+    def start_without_face(
+        self, frame: CapturedFrame, seq: int | None = None, call: int | None = None
+    ) -> Snapshot:
         """A session of a scene that shows no face (docs/protocol.md 8.9): its snapshot frame
-        is ``frame``, drawn alone, with the camera's motion and the refreshes over it. Its
-        face, the last session's, is kept outside the frame (every receiver draws the scene
-        alone, whatever it knows of this), and its texture is empty. A face that comes
-        begins a session of it (:meth:`analyse`)."""
-        assert self.session is not None and self._last_values is not None, "start() first"
+        is ``frame``, drawn alone, with the camera's motion and the refreshes over it; valid
+        from frame ``seq`` (default: this frame's); ``call``: as :meth:`start`'s. Its face
+        (the last session's, or the canonical one's when the call begins with no face) is
+        kept outside the frame, so every receiver draws the scene alone whatever it knows
+        of this, and its texture is empty. A face that comes begins a session of it
+        (:meth:`analyse`). Only with the landmark tracker (markers are looked for on a face).
+        """
+        assert isinstance(self.tracker, LandmarkTracker), "a scene with no face needs landmarks"
+        if self.session is None:  # the call begins with no face: the canonical one stands in
+            mesh = self.canonical.with_vertices(
+                mesh_code.quantise(self.canonical.vertices).astype(np.float64)
+            )
+            scale = self.width / 4 / float(np.ptp(mesh.vertices[:, 0]))  # any size will do
+            pose = pose_from_channels(
+                {POSE_ROTATION: np.zeros(3), POSE_SCALE: np.log([scale]),
+                 POSE_TRANSLATION: np.zeros(3)}
+            )  # fmt: skip
+            self._face_model(mesh, pose, self.error_px, fit_now=False)
+            self.session = SessionModel(mesh, np.zeros((0, 0, 3), np.uint8), frame.image)
+            self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
+            self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
+        if self.scene_cut is not None and self.scene_cut.last is None:
+            self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
+        assert self._last_values is not None
         values = {name: np.zeros_like(v) for name, v in self._last_values.items()}
         for name in (POSE_ROTATION, POSE_SCALE, WIRE):
             values[name] = self._last_values[name].copy()
@@ -546,9 +582,12 @@ class FaceEncoder:
                 shown, outline, person_mask(shown), self.fps, self.refresh_kbps
             )
         logger.info("frame %d shows no face: a session of the scene alone", frame.index)
+        meta: dict[str, str | int | float] = {mesh_code.VERTEX_STEP: mesh_code.STEP_CM, FACE: 0}
+        if call is not None:
+            meta[CALL] = call
         return Snapshot(
             session_id=self.session_id,
-            seq=frame.index,
+            seq=frame.index if seq is None else seq,
             width=self.width,
             height=self.height,
             fps=self.fps,
@@ -559,7 +598,7 @@ class FaceEncoder:
             rig_hash=rig_hash(),
             keyframe_interval=interval,
             reference=[tuple(int(v) for v in values[s.name]) for s in self._specs],
-            meta={mesh_code.VERTEX_STEP: mesh_code.STEP_CM, CALL: call, FACE: 0},
+            meta=meta,
         )
 
     def _own_face_back(self, frame: CapturedFrame) -> bool:
@@ -739,7 +778,8 @@ class FaceEncoder:
         elif result is None:
             self.frames_untracked += 1  # repeat the last values
             self._untracked_run += 1
-            if self.scene_cut is not None and self._untracked_run >= round(FACE_LOST_S * self.fps):
+            lost = self._untracked_run >= round(FACE_LOST_S * self.fps)
+            if self.scene_cut is not None and self.scenes_without_face and lost:
                 self._new_scene = True  # the face has gone: the scene alone from now on
         else:
             self._untracked_run = 0

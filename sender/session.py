@@ -33,6 +33,7 @@ from facewire.sender.markers import NO_MARKERS
 from facewire.sender.refresh import REFRESH_KBPS
 from facewire.sender.rem import BUDGET_KBPS as EYES_KBPS
 from facewire.sender.rem import MOUTH_BUDGET_KBPS
+from facewire.sender.scene_cut import FACE_LOST_S
 from facewire.sender.snapshot_draft import draft, sharper
 
 logger = logging.getLogger(__name__)
@@ -259,19 +260,28 @@ def start_session(
     name: str,
     seq: int | None = None,
 ) -> tuple[Snapshot, list[CapturedFrame]]:
-    """Start ``encoder`` on the first frame that shows a face within FACE_SEARCH_S of input.
+    """Start ``encoder`` on the first frame that shows a face; with the landmark tracker, on
+    the scene alone (``FaceEncoder.start_without_face``: no one in front of the camera yet)
+    where none has shown one for FACE_LOST_S. Its session of the face begins when a face
+    comes (``run_sender``).
 
     Returns the snapshot, valid from frame ``seq`` (default: the first frame kept), and the
-    last FACE_SEARCH_KEEP frames read (the face frame last): they still have to be sent.
-    Raises CaptureError (one line, naming the source ``name``) when none shows a face, or
-    with the marker tracker none shows the markers on it.
+    last FACE_SEARCH_KEEP frames read (the snapshot frame last): they still have to be sent.
+    Raises CaptureError (one line, naming the source ``name``) when the input ends before,
+    or with the marker tracker none of FACE_SEARCH_S of input shows a face, or the markers
+    on it.
     """
     kept: deque[CapturedFrame] = deque(maxlen=FACE_SEARCH_KEEP)
     read = 0
+    waits = round(FACE_LOST_S * fps)
     for frame in itertools.islice(frames, face_search(fps)):
         kept.append(frame)
         read += 1
-        snapshot = encoder.start(frame, seq=kept[0].index if seq is None else seq)
+        first = kept[0].index if seq is None else seq
+        snapshot = encoder.start(frame, seq=first)
+        if snapshot is None and encoder.scenes_without_face and read >= waits:
+            logger.info("no face in the first %d frames: the scene alone until one comes", read)
+            snapshot = encoder.start_without_face(frame, seq=first)
         if snapshot is not None:
             return snapshot, list(kept)
     if isinstance(encoder.tracker, MarkerFaceTracker) and encoder.tracker.state == NO_MARKERS:
