@@ -71,6 +71,8 @@ class RoomSender:
         self._session_id = 0
         self._last_seq = 0
         self._last_publish = clock()
+        #: Snapshots served to receivers that asked (none: the peers read them from the bucket).
+        self.snapshots_served = 0
         self.bundles = 0
         self.bytes_sealed = 0
         self.bytes_by_kind: Counter[str] = Counter()

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import cv2
 
 from facewire.protocol.clock import now_us
+from facewire.protocol.constants import SCENE
 from facewire.protocol.packets import (
     Bye,
     DeltaFrame,
@@ -44,6 +45,8 @@ logger = logging.getLogger(__name__)
 #: that begins at the input's first frame shows the first picture for those before.
 FACE_SEARCH_S = 10.0
 FACE_SEARCH_KEEP = 60
+#: At the input's end, a receiver still joining the last new scene is waited for this long.
+SCENE_JOIN_WAIT_S = 3.0
 
 FramePacket = KeyFrame | DeltaFrame
 #: How often the pictures' budget follows the link's (frames).
@@ -67,6 +70,7 @@ class SenderReport:
     # Sessions started at a cut to another scene, and each one's first frame: its number and
     # its capture time (µs, this end's clock).
     scenes: int = 0
+    scenes_joined: int = 0  # of them, how many a receiver said it joined ("scene")
     scene_frames: list[int] = field(default_factory=list)
     scene_capture_us: list[int] = field(default_factory=list)
     busy_s: float = 0.0  # own processing time: track + encode + publish
@@ -116,15 +120,8 @@ def run_sender(
             report.stopped = True
             break
         next_seq = frame.index + 1
-        if scene is not None and scene.snapshot is not None and not scene.served:
-            # Served at once, and said at once: the receiver shows the new scene's first
-            # frame while the encoder readies its fit.
-            endpoint.set_snapshot(scene.snapshot, scene.draft, scene.sharper)
-            endpoint.heartbeat()
-            scene.served = True
-            report.scenes += 1
-            report.scene_frames.append(scene.frame.index)
-            report.scene_capture_us.append(scene.frame.capture_us)
+        if scene is not None:
+            scene.serve(endpoint, report)
         if scene is not None and not scene.done():
             # The encoder is busy: nothing to send. The endpoint answers snapshot requests;
             # what is for the encoder waits.
@@ -164,6 +161,8 @@ def run_sender(
             share_pictures_budget(encoder, endpoint.patch_budget_bps() / 1000.0)
     if scene is not None:
         scene.done(wait=True)  # the encoder is the caller's again
+        scene.serve(endpoint, report)  # its first frame stands for the frames skipped
+    _until_scene_joined(endpoint, encoder, report, on_stats)
     if read_to is not None:
         next_seq = max(next_seq, read_to())
     endpoint.publish(Bye(seq=next_seq))
@@ -181,6 +180,26 @@ def share_pictures_budget(encoder: FaceEncoder, left_kbps: float) -> None:
         encoder.rem.set_budget(EYES_KBPS * scale)
     if encoder.refresh is not None:
         encoder.refresh.set_budget(REFRESH_KBPS * scale)
+
+
+def _until_scene_joined(
+    endpoint: SenderEndpoint,
+    encoder: FaceEncoder,
+    report: SenderReport,
+    on_stats: Callable[[dict[str, float]], None] | None,
+) -> None:
+    """Before the Bye: where the input ended just after a new scene that a receiver of this
+    call is still joining (it fetches the new snapshot: a draft waits for its datagrams' path
+    up to a second), answer it for up to SCENE_JOIN_WAIT_S. A Bye sent meanwhile is not its
+    session's: it waited for the new snapshot until its join timeout, and the frames after
+    the cut were lost (a file that cut to a face in its last half second)."""
+    if report.scenes_joined >= report.scenes or not endpoint.snapshots_served:
+        return  # no scene since the last join, or no receiver asks (a room's peers)
+    deadline = time.monotonic() + SCENE_JOIN_WAIT_S
+    while report.scenes_joined < report.scenes and time.monotonic() < deadline:
+        endpoint.end_frame()  # what is bundled (the new session's Heartbeat) goes
+        _read_back_channel(endpoint, encoder, report, on_stats, endpoint.poll(20))
+        endpoint.heartbeat_if_idle()
 
 
 class _SceneStart:
@@ -211,6 +230,18 @@ class _SceneStart:
         self.snapshot = snapshot  # last: the call's loop serves it with its versions
         if snapshot is not None:
             encoder.prepare_fit()
+
+    def serve(self, endpoint: SenderEndpoint, report: SenderReport) -> None:
+        """Serve the snapshot once it is made, and say so at once: the receiver shows the new
+        scene's first frame while the encoder readies its fit."""
+        if self.snapshot is None or self.served:
+            return
+        endpoint.set_snapshot(self.snapshot, self.draft, self.sharper)
+        endpoint.heartbeat()
+        self.served = True
+        report.scenes += 1
+        report.scene_frames.append(self.frame.index)
+        report.scene_capture_us.append(self.frame.capture_us)
 
     def done(self, wait: bool = False) -> bool:
         if wait:
@@ -335,6 +366,8 @@ def _read_back_channel(
             encoder.request_keyframe()
             report.keyframe_requests += 1
         elif isinstance(packet, ReceiverStats):
+            if packet.values.get(SCENE):
+                report.scenes_joined = report.scenes
             report.receiver_stats.update(packet.values)
             if on_stats is not None:
                 on_stats(dict(packet.values))

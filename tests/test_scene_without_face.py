@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -157,3 +158,30 @@ def test_a_call_shows_the_slide_then_the_face_again(demo: tuple) -> None:
         first = new.index(True)
         assert all(off(rebuilt[i], held) < 2.0 for i in range(cut, cut + first))
         assert all(new[first : first + 10])
+
+
+@pytest.mark.parametrize("tail", [12, 3])
+def test_a_face_in_the_last_half_second_of_a_file_is_still_shown(
+    tmp_path: Path, tail: int
+) -> None:
+    """The face comes ``tail`` frames before the input ends: the sender said Bye before its
+    receiver had the new session's snapshot (a draft waits for its datagrams' path), and the
+    receiver waited for it until its join timeout, the face never shown; or, its session
+    still being built when the input ended, never served it. It is served, and the receiver
+    answered, before the Bye."""
+    frames = slide(40) + bundled(tail)
+    clip = tmp_path / "late.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), FPS, (640, 480))
+    for image in frames:
+        writer.write(image)
+    writer.release()
+    out, stats_path = tmp_path / "out.mp4", tmp_path / "stats.json"
+    args = ["demo", "--input", str(clip), "--output", str(out), "--no-sound", "--every-frame"]
+    assert main([*args, "--stats", str(stats_path)]) == 0
+    stats = json.loads(stats_path.read_text())
+    assert stats["ended_by"] == "bye" and stats["scenes"] == 1
+    capture, rebuilt = cv2.VideoCapture(str(out)), []
+    while (read := capture.read())[0]:
+        rebuilt.append(read[1])
+    assert len(rebuilt) == len(frames)
+    assert off(rebuilt[-1], frames[-1]) < 6.0
