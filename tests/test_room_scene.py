@@ -21,7 +21,7 @@ from facewire.room_sender import RoomSender
 from facewire.sender.capture import CapturedFrame
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.session import run_sender
-from tests.cut_clip import BEFORE, off, spliced
+from tests.cut_clip import BEFORE, bundled, off, slide, spliced
 from tests.room_helpers import KeptLink
 
 pytest.importorskip("cryptography")
@@ -144,3 +144,32 @@ def test_a_new_scene_whose_snapshot_is_not_in_the_bucket_joins_the_peer_again(
     assert any("alice left (its new scene cannot be shown" in line for line in said), said
     again = _recording(tmp_path / "alice.2.mp4")
     assert again and off(again[-1], frames[-1]) < 12.0
+
+
+def test_a_peer_who_begins_with_no_face_is_drawn_as_its_scene_then_its_face(
+    tmp_path: Path,
+) -> None:
+    """Alice's camera shows a slide, then her face: her call begins with a session of the
+    scene alone (her face kept outside the frame), and the peer draws the slide with no face
+    on it, then her face's session as a new scene of hers."""
+    key = RoomKey.generate("standup")
+    frames = slide(30) + bundled(45)
+    encoder = FaceEncoder(640, 480, FPS, refresh=False)
+    snapshot = encoder.start_without_face(CapturedFrame(0, frames[0], now_us()), seq=0)
+    link = Bucket()
+    sealer = Sealer(key.base_key("alice"), new_kid("alice"))
+    endpoint = RoomSender(link, key, "alice", sealer, FPS, DEFAULT_BUDGET_BPS)  # type: ignore[arg-type]
+    endpoint.set_snapshot(snapshot)
+    report = run_sender(endpoint, encoder, _paced(frames))  # type: ignore[arg-type]
+    assert report.scenes == 1
+    receiver, said = _receive(key, link, tmp_path, link.at)
+    alice = receiver.figures["alice"]
+    assert alice.sessions == 1 and alice.scenes == 1 and alice.left == "said bye", said
+    rebuilt = _recording(tmp_path / "alice.mp4")
+    first = alice.recorded_from
+    assert first is not None and first + len(rebuilt) == len(frames)
+    inputs = frames[first:]
+    cut = 30 - first
+    assert all(off(rebuilt[i], inputs[i]) < 3.0 for i in range(cut))  # the slide alone
+    new = [off(rebuilt[i], inputs[i]) < 12.0 for i in range(cut, len(inputs))]
+    assert True in new and new.index(True) < FPS and all(new[new.index(True) :])
