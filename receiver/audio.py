@@ -288,7 +288,9 @@ class AudioReport:
 
 
 class _Timeline:
-    """What was played, as 48 kHz mono int16 on the capture clock, kept in a WAV file.
+    """What was played, as 48 kHz mono int16 on the capture clock, kept in a WAV file (an
+    anonymous one: it goes with the process however the process ends; named, a receiver
+    killed mid-call left one behind in the temporary folder).
 
     A pause between runs is written as silence, but never longer than the time that passed
     on ``clock`` (µs) and a second: capture times that lie cannot make the file outgrow the
@@ -298,10 +300,8 @@ class _Timeline:
     def __init__(self, clock: Callable[[], int] = now_us) -> None:
         self._clock = clock
         self._written_at: int | None = None
-        fd, name = tempfile.mkstemp(prefix="facewire-audio-", suffix=".wav")
-        os.close(fd)
-        self.path = Path(name)
-        self._wav = wave.open(name, "wb")
+        self._file = tempfile.TemporaryFile(prefix="facewire-audio-", suffix=".wav")
+        self._wav = wave.open(self._file, "wb")  # closing it leaves the file open
         self._wav.setnchannels(1)
         self._wav.setsampwidth(2)
         self._wav.setframerate(AUDIO_RATE)
@@ -345,8 +345,12 @@ class _Timeline:
         self._wav.close()
 
     def read(self) -> np.ndarray:
-        with wave.open(str(self.path)) as w:
+        self._file.seek(0)
+        with wave.open(self._file, "rb") as w:
             return np.frombuffer(w.readframes(w.getnframes()), "<i2")
+
+    def discard(self) -> None:
+        self._file.close()
 
 
 class AudioPlayout:
@@ -639,7 +643,7 @@ class AudioPlayout:
         return out
 
     def discard(self) -> None:
-        self._timeline.path.unlink(missing_ok=True)
+        self._timeline.discard()
 
 
 def face_latency_from(shown: list[tuple[int, int]]) -> Callable[[], int | None]:

@@ -525,4 +525,4 @@ def test_the_sound_file_grows_no_faster_than_the_call() -> None:
     timeline.close()
     assert timeline.samples <= 2 * AUDIO_RATE
     assert len(timeline.read()) == timeline.samples
-    timeline.path.unlink()
+    timeline.discard()
