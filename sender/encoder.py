@@ -492,6 +492,12 @@ class FaceEncoder:
         self.call_id = self.call_id or old
         self.session_id = secrets.randbelow(UINT32_MAX) + 1
         snapshot = self.start(frame, call=self.call_id, fit_now=fit_now)
+        if snapshot is None:
+            # Its frames are not sent meanwhile: with no cut (a far better view of the face,
+            # which turned away; another face, gone), the old face is lost as surely as in
+            # a frame not tracked. (Not counted, foreman's pan away after a better view sent
+            # nothing for its last 4 s, and the receiver refused the Bye so far on.)
+            self._untracked_run += 1
         if snapshot is None and self.scenes_without_face and self._no_face_for_long(frame):
             snapshot = self.start_without_face(frame, call=self.call_id)
         if snapshot is None:

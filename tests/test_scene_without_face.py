@@ -161,9 +161,7 @@ def test_a_call_shows_the_slide_then_the_face_again(demo: tuple) -> None:
 
 
 @pytest.mark.parametrize("tail", [12, 3])
-def test_a_face_in_the_last_half_second_of_a_file_is_still_shown(
-    tmp_path: Path, tail: int
-) -> None:
+def test_a_face_in_the_last_half_second_of_a_file_is_still_shown(tmp_path: Path, tail: int) -> None:
     """The face comes ``tail`` frames before the input ends: the sender said Bye before its
     receiver had the new session's snapshot (a draft waits for its datagrams' path), and the
     receiver waited for it until its join timeout, the face never shown; or, its session
@@ -185,3 +183,29 @@ def test_a_face_in_the_last_half_second_of_a_file_is_still_shown(
         rebuilt.append(read[1])
     assert len(rebuilt) == len(frames)
     assert off(rebuilt[-1], frames[-1]) < 6.0
+
+
+def test_a_better_view_whose_face_then_goes_ends_in_the_scene_alone() -> None:
+    """The face was seen far better than in its snapshot (a new session due), and then no
+    face is found to start it from (foreman, his face panned out of view): the frames are not
+    sent meanwhile, as for any new scene, and once the face has been gone FACE_LOST_S the
+    scene alone is. (The sender sent nothing for foreman's last 4 s, and his receiver
+    refused the Bye so far on.) Driven as ``run_sender`` drives it."""
+    frames = bundled(80)
+    for image in frames[20:]:
+        cv2.ellipse(image, (330, 230), (140, 190), 0, 0, 360, (90, 120, 160), -1)
+    encoder = FaceEncoder(640, 480, FPS)
+    assert encoder.start(CapturedFrame(0, frames[0], 0)) is not None
+    started = None
+    for i, image in enumerate(frames[1:], start=1):
+        frame = CapturedFrame(i, image, round(i * 1e6 / FPS))
+        if i == 20:
+            encoder._new_scene = encoder._better = True  # as BetterView.seen says it
+        if encoder.scene_changed(frame):
+            snapshot = encoder.start_scene(frame)
+            if snapshot is not None and started is None:
+                started = snapshot
+            continue  # not sent: run_sender skips it
+        encoder.encode(frame)
+    assert started is not None and not shows_face(started)
+    assert abs(started.seq - (20 + round(FACE_LOST_S * FPS))) <= 1
