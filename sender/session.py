@@ -193,8 +193,8 @@ def _until_scene_joined(
     up to a second), answer it for up to SCENE_JOIN_WAIT_S. A Bye sent meanwhile is not its
     session's: it waited for the new snapshot until its join timeout, and the frames after
     the cut were lost (a file that cut to a face in its last half second)."""
-    if report.scenes_joined >= report.scenes or not endpoint.snapshots_served:
-        return  # no scene since the last join, or no receiver asks (a room's peers)
+    if report.stopped or report.scenes_joined >= report.scenes or not endpoint.snapshots_served:
+        return  # asked to stop, no scene since the last join, or none asks (a room's peers)
     deadline = time.monotonic() + SCENE_JOIN_WAIT_S
     while report.scenes_joined < report.scenes and time.monotonic() < deadline:
         endpoint.end_frame()  # what is bundled (the new session's Heartbeat) goes
