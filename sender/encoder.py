@@ -502,6 +502,10 @@ class FaceEncoder:
             snapshot = self.start_without_face(frame, call=self.call_id)
         if snapshot is None:
             self.session_id = old
+            if self.faceless and self._left is None:
+                # The face seen in the scene without one is gone already (someone passing,
+                # a face on a poster seen a moment): that session goes on, its frames sent.
+                self._new_scene, self._found_run = False, 0
             return None
         self._new_scene, self._left = False, None
         self.scenes += 1

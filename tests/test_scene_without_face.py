@@ -20,7 +20,7 @@ from facewire.receiver.decoder import FaceDecoder, shows_face
 from facewire.sender.capture import CapturedFrame
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.scene_cut import FACE_FOUND_FRAMES, FACE_LOST_S, NO_FACE_AFTER_S
-from tests.cut_clip import bundled, off, slide
+from tests.cut_clip import FIXTURE, bundled, off, slide
 
 FPS = 30.0
 #: Frames of the bundled clip before the cut, of the slide, and of the bundled clip again.
@@ -209,3 +209,27 @@ def test_a_better_view_whose_face_then_goes_ends_in_the_scene_alone() -> None:
         encoder.encode(frame)
     assert started is not None and not shows_face(started)
     assert abs(started.seq - (20 + round(FACE_LOST_S * FPS))) <= 1
+
+
+def test_a_face_seen_a_moment_in_a_scene_without_one_leaves_that_scene_going_on() -> None:
+    """In a session of the scene alone a face is tracked FACE_FOUND_FRAMES running and is gone
+    on the next frame, which its session would have been started from: the scene alone goes
+    on, its frames sent, and no session is started (a session looked for on every frame, none
+    sent)."""
+    frames = slide(60)
+    face = cv2.resize(cv2.imread(str(FIXTURE)), (200, 200))
+    # No cut: a face on a poster held up (the tracker finds it from its second frame).
+    for image in frames[20 : 21 + FACE_FOUND_FRAMES]:
+        image[260:460, 420:620] = face
+    encoder = FaceEncoder(640, 480, FPS)
+    encoder.start_without_face(CapturedFrame(0, frames[0], 0))
+    sent, started = 0, 0
+    for i, image in enumerate(frames[1:], start=1):
+        frame = CapturedFrame(i, image, round(i * 1e6 / FPS))
+        if encoder.scene_changed(frame):
+            started += encoder.start_scene(frame) is not None
+            continue  # not sent: run_sender skips it
+        encoder.encode(frame)
+        sent += 1
+    assert encoder.faceless and started == 0
+    assert sent == len(frames) - 2  # the one its session was to start from
