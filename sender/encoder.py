@@ -570,7 +570,7 @@ class FaceEncoder:
         values[POSE_TRANSLATION][1] = round(self.height / 2 / self.steps[POSE_TRANSLATION])
         background = frame.image.copy()
         background_webp = _webp(background, BACKGROUND_QUALITY)
-        self.faceless, self._found_run = True, 0
+        self.faceless, self._found_run, self._untracked_run = True, 0, 0
         self.session = SessionModel(self.session.mesh, self.session.texture, background)
         self.rem = self.synthesis = self.edge = self.body = self.better_view = None
         self._edge_smoother = self._smoother = None
