@@ -252,7 +252,7 @@ class FaceEncoder:
         #: Bytes of the frame packets that were the edge corrections' share.
         self.edge_bytes = 0.0
         #: Cuts to another scene, each starting a session (None: one session, whatever comes).
-        self.scene_cut = SceneCut() if scenes else None
+        self.scene_cut = SceneCut(fps) if scenes else None
         #: Sessions started for a new scene, and the session that began the call (0: none yet).
         self.scenes = 0
         self.call_id = 0
@@ -290,8 +290,10 @@ class FaceEncoder:
         found = self.tracker.track(frame.image)
         if not isinstance(found, Landmarks):  # a marker tracker gives landmarks here too
             return None
-        if self.scene_cut is not None and self.scene_cut.last is None:
-            self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
+        if self.scene_cut is not None:
+            if self.scene_cut.last is None:
+                self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
+            self.scene_cut.begin(frame.image)
         points = found.points
         self._face_box = None  # the next frame's face is this one's: no jump to look for
         self._jumped_from = None
@@ -555,8 +557,10 @@ class FaceEncoder:
             self.session = SessionModel(mesh, np.zeros((0, 0, 3), np.uint8), frame.image)
             self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
             self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
-        if self.scene_cut is not None and self.scene_cut.last is None:
-            self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
+        if self.scene_cut is not None:
+            if self.scene_cut.last is None:
+                self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
+            self.scene_cut.begin(frame.image)
         assert self._last_values is not None
         values = {name: np.zeros_like(v) for name, v in self._last_values.items()}
         for name in (POSE_ROTATION, POSE_SCALE, WIRE):

@@ -13,6 +13,12 @@ news studio whose monitor changes, 300 frames each) consecutive frames stayed un
 different clips were at least 0.43 and 23 apart (BENCHMARKS.md, "A new picture when the
 scene changes").
 
+A dissolve changes the frame as slowly as a talking head does, and ends in another scene: a
+frame whose colours are DRIFT_HISTOGRAM apart from the session's snapshot frame (and its grey
+thumbnail THUMBNAIL_CUT apart) for DRIFT_S is another scene too. Over the 19 real clips the
+frames of one shot stayed under 0.39 from their first (carphone's window and light); the
+first frames of two different clips are 0.57 apart and more.
+
 A face that jumps farther than a face width from one frame to the next, or grows or shrinks
 by half, is another face (a person who sat down as the other left, a camera switched to a
 similar scene): no head moves that much in a frame.
@@ -31,6 +37,10 @@ import numpy as np
 #: Both must be passed between two consecutive frames for a cut.
 HISTOGRAM_CUT = 0.25
 THUMBNAIL_CUT = 16.0
+#: A frame this far in colours from the session's snapshot frame, for DRIFT_S running, is
+#: another scene (a dissolve).
+DRIFT_HISTOGRAM = 0.5
+DRIFT_S = 0.5
 #: A face's centre moving this many face widths in one frame is another face...
 FACE_JUMP = 1.0
 #: ...and so is one whose width changes by this factor (either way).
@@ -101,33 +111,52 @@ def another_face(before: tuple[float, float, float], now: tuple[float, float, fl
 
 
 class SceneCut:
-    """Looks at every frame; :meth:`changed` is True on the first frame of another scene."""
+    """Looks at every frame; :meth:`changed` is True on the first frame of another scene.
+    ``fps``: frames a second (how long a dissolve's end is waited for)."""
 
-    def __init__(self) -> None:
-        #: The features of the last frame and of the one before it (None: not seen yet).
+    def __init__(self, fps: float = 30.0) -> None:
+        #: The features of the last frame and of the one before it (None: not seen yet); at a
+        #: dissolve's end, ``before`` is the snapshot frame's (the scene left).
         self.last: Features | None = None
         self.before: Features | None = None
         #: The cuts seen so far (frames of another scene).
         self.cuts = 0
+        self._snapshot: Features | None = None  # the session's snapshot frame's features
+        self._drift_frames = max(1, round(DRIFT_S * fps))
+        self._drifted = 0  # frames running far from the snapshot frame
+
+    def begin(self, image: np.ndarray) -> None:
+        """A session begins from ``image``: what a dissolve is measured from."""
+        self._snapshot, self._drifted = _features(image), 0
 
     def changed(self, image: np.ndarray) -> bool:
-        """Whether ``image`` (h, w, 3) uint8 BGR shows another scene than the frame before."""
+        """Whether ``image`` (h, w, 3) uint8 BGR shows another scene than the frame before
+        (a cut), or than the session's snapshot frame for a while (a dissolve's end)."""
         self.before, self.last = self.last, _features(image)
-        if self.before is None or not _apart(self.before, self.last):
-            return False
-        self.cuts += 1
-        return True
+        if self.before is not None and _apart(self.before, self.last):
+            self.cuts += 1
+            return True
+        if self._snapshot is not None and _apart(self._snapshot, self.last, DRIFT_HISTOGRAM):
+            self._drifted += 1
+            if self._drifted == self._drift_frames:
+                self.before = self._snapshot
+                self.cuts += 1
+                return True
+        else:
+            self._drifted = 0
+        return False
 
     def like(self, features: Features) -> bool:
         """Whether the last frame shows the scene of a frame's ``features`` (:attr:`last`)."""
         return self.last is not None and not _apart(features, self.last)
 
 
-def _apart(a: Features, b: Features) -> bool:
-    """Whether two frames' features (:func:`_features`) are two scenes'."""
+def _apart(a: Features, b: Features, colours_apart: float = HISTOGRAM_CUT) -> bool:
+    """Whether two frames' features (:func:`_features`) are two scenes': their colours more
+    than ``colours_apart`` apart and their layouts more than THUMBNAIL_CUT."""
     colours = cv2.compareHist(a[0], b[0], cv2.HISTCMP_BHATTACHARYYA)
     layout = float(np.abs(a[1] - b[1]).mean())
-    return bool(colours > HISTOGRAM_CUT and layout > THUMBNAIL_CUT)
+    return bool(colours > colours_apart and layout > THUMBNAIL_CUT)
 
 
 class BetterView:

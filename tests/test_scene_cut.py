@@ -19,6 +19,7 @@ from facewire.sender.scene_cut import (
     BETTER_AFTER_S,
     BETTER_FRAMES,
     BETTER_SHARE,
+    DRIFT_S,
     FRONTAL_SHARE,
     BetterView,
     SceneCut,
@@ -27,7 +28,7 @@ from facewire.sender.scene_cut import (
 )
 from facewire.sender.session import _SceneStart
 from facewire.sender.snapshot_draft import is_draft
-from tests.cut_clip import AFTER, BEFORE, FIXTURE, bundled, off, other_scene, spliced
+from tests.cut_clip import AFTER, BEFORE, FIXTURE, bundled, off, other_scene, slide, spliced
 
 
 def test_a_talking_head_is_one_scene_and_a_splice_is_a_cut() -> None:
@@ -253,3 +254,27 @@ def test_a_new_scenes_versions_for_a_thin_link_are_made_with_it_off_the_calls_lo
     assert scene.draft is not None and is_draft(scene.draft)
     assert scene.draft.session_id == scene.snapshot.session_id
     assert scene.sharper[-1] is scene.snapshot  # 640x480's fits in a datagram message
+
+
+def test_a_dissolve_is_a_new_scene_once_it_has_gone_far() -> None:
+    """A second's dissolve from the bundled clip to a slide: no two frames in a row are a cut,
+    but once the frame has been far from the session's snapshot frame for DRIFT_S it is
+    another scene, once; the scene left is the snapshot frame's. (Claire dissolving into Miss
+    America: her face drawn over Claire's studio, frame SSIM 0.34 after it.) The bundled
+    clip itself never drifts that far."""
+    head, other = bundled(90), slide(60)
+    fade = [cv2.addWeighted(head[60 + k], 1 - k / 30, other[k], k / 30, 0.0) for k in range(1, 30)]
+    frames = head[:60] + fade + other[30:]
+    scene = SceneCut(30.0)
+    scene.begin(frames[0])
+    changed, left_like_now = [], []
+    for i, image in enumerate(frames):
+        if scene.changed(image):
+            changed.append(i)
+            assert scene.before is not None
+            left_like_now.append(scene.like(scene.before))
+    assert len(changed) == 1 and 60 + 15 <= changed[0] <= 60 + 29 + round(DRIFT_S * 30)
+    assert left_like_now == [False]  # else the encoder takes the scene left for back
+    still = SceneCut(30.0)
+    still.begin(head[0])
+    assert not any(still.changed(image) for image in bundled(300))
