@@ -39,10 +39,10 @@ from facewire.sender.snapshot_draft import draft, sharper
 
 logger = logging.getLogger(__name__)
 
-#: Seconds of input looked through for a first face (a title card, an empty chair before it:
-#: a file's first face 59 frames in was a call, one 61 frames in an error), of which the last
-#: FACE_SEARCH_KEEP frames are kept to be sent (a 1280x720 frame is 2.8 MB). A recording
-#: that begins at the input's first frame shows the first picture for those before.
+#: Seconds of input looked through for a first face with the marker tracker (a title card, an
+#: empty chair before it; with landmarks, the scene alone is sent after FACE_LOST_S), of
+#: which the last FACE_SEARCH_KEEP frames are kept to be sent (a 1280x720 frame is 2.8 MB). A
+#: recording that begins at the input's first frame shows the first picture for those before.
 FACE_SEARCH_S = 10.0
 FACE_SEARCH_KEEP = 60
 #: At the input's end, a receiver still joining the last new scene is waited for this long.
