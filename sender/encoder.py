@@ -327,8 +327,6 @@ class FaceEncoder:
             "texture_size": side,
             mesh_code.VERTEX_STEP: mesh_code.STEP_CM,
         }
-        if call is not None:
-            meta[CALL] = call
         if self.use_rem:
             face = np.ptp(points[:, 0])
             wanted = max(MIN_REM_PATCH_SIZE, texture_size(face, REM_TEXELS_PER_FACE_PIXEL))
@@ -350,7 +348,7 @@ class FaceEncoder:
         budget_px = max(
             self.error_px, TRACKER_RESOLUTION_SHARE * crop_from_points(points).pixel_size
         )
-        specs = self._face_model(mesh, pose, budget_px, fit_now)
+        self._face_model(mesh, pose, budget_px, fit_now)
         assert self.wires is not None
         self.faceless, self._untracked_run = False, 0
         people = person_mask(frame.image)
@@ -359,10 +357,6 @@ class FaceEncoder:
         self._camera_shift = np.zeros(CAMERA_SIZE)
         self.body = BodyTracker(frame.image, outline, people) if self.use_body else None
         self._body_shift = np.zeros(BODY_SIZE)
-        interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
-        self._channels = ChannelEncoder(
-            specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
-        )
         self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
         self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
         self.refresh = None
@@ -391,27 +385,47 @@ class FaceEncoder:
             self.wires.n_params,
             self.basis.size,
         )
+        return self._snapshot(
+            frame.index if seq is None else seq, vertices, texture_webp, background_webp, meta,
+            call,
+        )  # fmt: skip
+
+    def _snapshot(
+        self,
+        seq: int,
+        vertices: np.ndarray,
+        texture: bytes,
+        background: bytes,
+        meta: dict[str, str | int | float],
+        call: int | None,
+    ) -> Snapshot:
+        """The Snapshot of the session just set up (its channels, and its values now as the
+        reference), valid from frame ``seq``, with a fresh coder for its frames; ``call``:
+        the session that began the call it goes on (``meta["call"]``), if any."""
+        interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
+        self._channels = ChannelEncoder(
+            self._specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
+        )
+        assert self._last_values is not None
         return Snapshot(
             session_id=self.session_id,
-            seq=frame.index if seq is None else seq,
+            seq=seq,
             width=self.width,
             height=self.height,
             fps=self.fps,
             vertices=vertices,
-            texture=texture_webp,
-            background=background_webp,
-            channels=[(s.name, s.size, s.step) for s in specs],
+            texture=texture,
+            background=background,
+            channels=[(s.name, s.size, s.step) for s in self._specs],
             rig_hash=rig_hash(),
             keyframe_interval=interval,
-            reference=[tuple(int(v) for v in self._last_values[s.name]) for s in specs],
-            meta=meta,
+            reference=[tuple(int(v) for v in self._last_values[s.name]) for s in self._specs],
+            meta=meta if call is None else {**meta, CALL: call},
         )
 
-    def _face_model(
-        self, mesh: FaceMesh, pose: Pose, budget_px: float, fit_now: bool
-    ) -> list[ChannelSpec]:
-        """Set up the wires, the lips and the channels' steps of a session's ``mesh``, seen at
-        ``pose`` in its snapshot frame with an error budget of ``budget_px``; its channels."""
+    def _face_model(self, mesh: FaceMesh, pose: Pose, budget_px: float, fit_now: bool) -> None:
+        """Set up the wires, the lips and the channels (their steps) of a session's ``mesh``,
+        seen at ``pose`` in its snapshot frame with an error budget of ``budget_px``."""
         self.wires = WireDeformer.from_rig(mesh.vertices, self.rig)
         if fit_now:
             self.wires.prepare_fit()
@@ -436,7 +450,6 @@ class FaceEncoder:
             ChannelSpec(EDGE, EDGE_SIZE, self.steps[EDGE]),
             ChannelSpec(BODY, BODY_SIZE, self.steps[BODY]),
         ]
-        return self._specs
 
     def _occlusion(self, mesh: FaceMesh, texture: np.ndarray) -> FaceOcclusion | None:
         """What looks for a hand in front of the face (sender/occlusion.py) on ``texture``,
@@ -581,10 +594,6 @@ class FaceEncoder:
         self._face_box = self._jumped_from = None
         self._camera_shift, self._body_shift = np.zeros(CAMERA_SIZE), np.zeros(BODY_SIZE)
         self._patches = []
-        interval = max(1, round(KEYFRAME_INTERVAL_S * self.fps))
-        self._channels = ChannelEncoder(
-            self._specs, round(1e6 / self.fps), self.session_id, keyframe_interval=interval
-        )
         self._last_values = values
         self.intended = None
         outline = self.rebuilt_vertices(values)[self.canonical.outline]
@@ -597,23 +606,10 @@ class FaceEncoder:
             )
         logger.info("frame %d shows no face: a session of the scene alone", frame.index)
         meta: dict[str, str | int | float] = {mesh_code.VERTEX_STEP: mesh_code.STEP_CM, FACE: 0}
-        if call is not None:
-            meta[CALL] = call
-        return Snapshot(
-            session_id=self.session_id,
-            seq=frame.index if seq is None else seq,
-            width=self.width,
-            height=self.height,
-            fps=self.fps,
-            vertices=self.session.mesh.vertices,
-            texture=b"",
-            background=background_webp,
-            channels=[(s.name, s.size, s.step) for s in self._specs],
-            rig_hash=rig_hash(),
-            keyframe_interval=interval,
-            reference=[tuple(int(v) for v in values[s.name]) for s in self._specs],
-            meta=meta,
-        )
+        return self._snapshot(
+            frame.index if seq is None else seq, self.session.mesh.vertices, b"",
+            background_webp, meta, call,
+        )  # fmt: skip
 
     def _own_face_back(self, frame: CapturedFrame) -> bool:
         """Whether ``frame`` shows the session's own face where it was before a face jump
