@@ -3,12 +3,16 @@ slide with no face on it)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
+from facewire.cli import main
 from facewire.sender.capture import VideoSource, demo_clip_path
+from tests.call_helpers import read_video
 
 FIXTURE = Path(__file__).parent / "fixtures" / "astronaut_face.jpg"
 BEFORE, AFTER = 30, 150  # frames of the bundled clip, then of the other scene (5 s: its session
@@ -61,3 +65,20 @@ def spliced() -> list[np.ndarray]:
 def off(a: np.ndarray, b: np.ndarray) -> float:
     """Mean absolute difference of two pictures, grey levels."""
     return float(np.abs(a.astype(int) - b.astype(int)).mean())
+
+
+def demo_call(
+    folder: Path, frames: list[np.ndarray], fps: float = 30.0
+) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
+    """``facewire demo`` (two processes, ZeroMQ on loopback, EGL) on ``frames`` written as an
+    MP4 in ``folder``, every frame sent (they are compared one by one): the clip as read back,
+    the recording and the call's stats."""
+    height, width = frames[0].shape[:2]
+    clip, out, stats = folder / "clip.mp4", folder / "out.mp4", folder / "stats.json"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+    for image in frames:
+        writer.write(image)
+    writer.release()
+    args = ["demo", "--input", str(clip), "--output", str(out), "--no-sound", "--every-frame"]
+    assert main([*args, "--stats", str(stats)]) == 0
+    return read_video(clip), read_video(out), json.loads(stats.read_text())

@@ -9,7 +9,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -21,6 +20,7 @@ from facewire.room_sender import RoomSender
 from facewire.sender.capture import CapturedFrame
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.session import run_sender
+from tests.call_helpers import read_video
 from tests.cut_clip import BEFORE, bundled, off, slide, spliced
 from tests.room_helpers import KeptLink
 
@@ -95,13 +95,6 @@ def _receive(
     return receiver, said
 
 
-def _recording(path: Path) -> list[np.ndarray]:
-    capture, out = cv2.VideoCapture(str(path)), []
-    while (read := capture.read())[0]:
-        out.append(read[1])
-    return out
-
-
 def test_a_peer_s_new_scene_is_drawn_in_its_recording_from_its_own_snapshot(
     cut_stream: tuple, tmp_path: Path
 ) -> None:
@@ -111,7 +104,7 @@ def test_a_peer_s_new_scene_is_drawn_in_its_recording_from_its_own_snapshot(
     assert alice.sessions == 1 and alice.scenes == 1 and alice.left == "said bye", said
     assert alice.malformed == 0
     assert any(line.startswith("alice: a new scene from frame") for line in said), said
-    rebuilt = _recording(tmp_path / "alice.mp4")
+    rebuilt = read_video(tmp_path / "alice.mp4")
     first = alice.recorded_from
     # Frame i of the recording is the sender's frame first + i (gaps held, to the Bye's).
     assert first is not None and first + len(rebuilt) == len(frames)
@@ -142,7 +135,7 @@ def test_a_new_scene_whose_snapshot_is_not_in_the_bucket_joins_the_peer_again(
     alice = receiver.figures["alice"]
     assert alice.sessions == 2 and alice.scenes == 0 and alice.left == "said bye", said
     assert any("alice left (its new scene cannot be shown" in line for line in said), said
-    again = _recording(tmp_path / "alice.2.mp4")
+    again = read_video(tmp_path / "alice.2.mp4")
     assert again and off(again[-1], frames[-1]) < 12.0
 
 
@@ -165,7 +158,7 @@ def test_a_peer_who_begins_with_no_face_is_drawn_as_its_scene_then_its_face(
     receiver, said = _receive(key, link, tmp_path, link.at)
     alice = receiver.figures["alice"]
     assert alice.sessions == 1 and alice.scenes == 1 and alice.left == "said bye", said
-    rebuilt = _recording(tmp_path / "alice.mp4")
+    rebuilt = read_video(tmp_path / "alice.mp4")
     first = alice.recorded_from
     assert first is not None and first + len(rebuilt) == len(frames)
     inputs = frames[first:]

@@ -3,14 +3,11 @@ with that session in the same call and never draws the old face over the new sce
 
 from __future__ import annotations
 
-import json
-
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facewire.cli import main
 from facewire.loopback import Loopback
 from facewire.models.mesh import load_canonical
 from facewire.sender.capture import CapturedFrame
@@ -28,7 +25,17 @@ from facewire.sender.scene_cut import (
 )
 from facewire.sender.session import _SceneStart
 from facewire.sender.snapshot_draft import is_draft
-from tests.cut_clip import AFTER, BEFORE, FIXTURE, bundled, off, other_scene, slide, spliced
+from tests.cut_clip import (
+    AFTER,
+    BEFORE,
+    FIXTURE,
+    bundled,
+    demo_call,
+    off,
+    other_scene,
+    slide,
+    spliced,
+)
 
 
 def test_a_talking_head_is_one_scene_and_a_splice_is_a_cut() -> None:
@@ -80,24 +87,7 @@ def test_after_a_cut_the_receiver_draws_the_new_scene() -> None:
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[np.ndarray], list, dict]:
     """``facewire demo`` (two processes, ZeroMQ on loopback, EGL) on the spliced clip."""
-    out = tmp_path_factory.mktemp("scene")
-    frames = spliced()
-    clip = out / "cut.mp4"
-    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (640, 480))
-    for image in frames:
-        writer.write(image)
-    writer.release()
-    args = ["demo", "--input", str(clip), "--output", str(out / "out.mp4"), "--no-sound"]
-    args.append("--every-frame")  # the pictures are compared frame by frame
-    assert main([*args, "--stats", str(out / "stats.json")]) == 0
-    capture, rebuilt = cv2.VideoCapture(str(out / "out.mp4")), []
-    while (read := capture.read())[0]:
-        rebuilt.append(read[1])
-    inputs = []
-    capture = cv2.VideoCapture(str(clip))
-    while (read := capture.read())[0]:
-        inputs.append(read[1])
-    return inputs, rebuilt, json.loads((out / "stats.json").read_text())
+    return demo_call(tmp_path_factory.mktemp("scene"), spliced())
 
 
 def test_a_call_goes_on_across_a_cut_in_a_new_session(demo: tuple) -> None:

@@ -4,7 +4,6 @@ a face over it."""
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -12,7 +11,6 @@ import cv2
 import numpy as np
 import pytest
 
-from facewire.cli import main
 from facewire.loopback import Loopback
 from facewire.protocol.constants import FACE
 from facewire.protocol.packets import Snapshot
@@ -20,7 +18,7 @@ from facewire.receiver.decoder import FaceDecoder, shows_face
 from facewire.sender.capture import CapturedFrame
 from facewire.sender.encoder import FaceEncoder
 from facewire.sender.scene_cut import FACE_FOUND_FRAMES, FACE_LOST_S, NO_FACE_AFTER_S
-from tests.cut_clip import FIXTURE, bundled, off, slide
+from tests.cut_clip import FIXTURE, bundled, demo_call, off, slide
 
 FPS = 30.0
 #: Frames of the bundled clip before the cut, of the slide, and of the bundled clip again.
@@ -128,22 +126,7 @@ def test_a_face_hidden_for_a_moment_stays_in_its_session() -> None:
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[np.ndarray], list, dict]:
     """``facewire demo`` (two processes, ZeroMQ on loopback, EGL) on a cut to a slide and
     back."""
-    out = tmp_path_factory.mktemp("faceless")
-    frames = _cut_to_slide_and_back()
-    clip = out / "cut.mp4"
-    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), FPS, (640, 480))
-    for image in frames:
-        writer.write(image)
-    writer.release()
-    args = ["demo", "--input", str(clip), "--output", str(out / "out.mp4"), "--no-sound"]
-    args += ["--every-frame", "--stats", str(out / "stats.json")]
-    assert main(args) == 0
-    rebuilt, inputs = [], []
-    for path, into in ((out / "out.mp4", rebuilt), (clip, inputs)):
-        capture = cv2.VideoCapture(str(path))
-        while (read := capture.read())[0]:
-            into.append(read[1])
-    return inputs, rebuilt, json.loads((out / "stats.json").read_text())
+    return demo_call(tmp_path_factory.mktemp("faceless"), _cut_to_slide_and_back())
 
 
 def test_a_call_shows_the_slide_then_the_face_again(demo: tuple) -> None:
@@ -168,21 +151,10 @@ def test_a_face_in_the_last_half_second_of_a_file_is_still_shown(tmp_path: Path,
     still being built when the input ended, never served it. It is served, and the receiver
     answered, before the Bye."""
     frames = slide(40) + bundled(tail)
-    clip = tmp_path / "late.mp4"
-    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), FPS, (640, 480))
-    for image in frames:
-        writer.write(image)
-    writer.release()
-    out, stats_path = tmp_path / "out.mp4", tmp_path / "stats.json"
-    args = ["demo", "--input", str(clip), "--output", str(out), "--no-sound", "--every-frame"]
-    assert main([*args, "--stats", str(stats_path)]) == 0
-    stats = json.loads(stats_path.read_text())
+    inputs, rebuilt, stats = demo_call(tmp_path, frames)
     assert stats["ended_by"] == "bye" and stats["scenes"] == 1
-    capture, rebuilt = cv2.VideoCapture(str(out)), []
-    while (read := capture.read())[0]:
-        rebuilt.append(read[1])
-    assert len(rebuilt) == len(frames)
-    assert off(rebuilt[-1], frames[-1]) < 6.0
+    assert len(rebuilt) == len(inputs) == len(frames)
+    assert off(rebuilt[-1], inputs[-1]) < 6.0
 
 
 def test_a_better_view_whose_face_then_goes_ends_in_the_scene_alone() -> None:
