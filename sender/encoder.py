@@ -291,8 +291,6 @@ class FaceEncoder:
         if not isinstance(found, Landmarks):  # a marker tracker gives landmarks here too
             return None
         if self.scene_cut is not None:
-            if self.scene_cut.last is None:
-                self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
             self.scene_cut.begin(frame.image)
         points = found.points
         self._face_box = None  # the next frame's face is this one's: no jump to look for
@@ -571,8 +569,6 @@ class FaceEncoder:
             self._last_values = self._quantise(self.channel_values(pose, self.rest_params), None)
             self._last_values[EDGE] = np.zeros(EDGE_SIZE, np.int64)
         if self.scene_cut is not None:
-            if self.scene_cut.last is None:
-                self.scene_cut.changed(frame.image)  # the scene to tell the next frame's from
             self.scene_cut.begin(frame.image)
         assert self._last_values is not None
         values = {name: np.zeros_like(v) for name, v in self._last_values.items()}

@@ -126,8 +126,11 @@ class SceneCut:
         self._drifted = 0  # frames running far from the snapshot frame
 
     def begin(self, image: np.ndarray) -> None:
-        """A session begins from ``image``: what a dissolve is measured from."""
+        """A session begins from ``image``: what a dissolve is measured from (and, at the
+        first, the frame the next one is told from)."""
         self._snapshot, self._drifted = _features(image), 0
+        if self.last is None:
+            self.last = self._snapshot
 
     def changed(self, image: np.ndarray) -> bool:
         """Whether ``image`` (h, w, 3) uint8 BGR shows another scene than the frame before
