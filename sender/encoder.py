@@ -78,6 +78,7 @@ from facewire.sender.scene_cut import (
     BetterView,
     SceneCut,
     another_face,
+    eye_openness,
     face_box,
 )
 from facewire.sender.synthesis import FaceSynthesis
@@ -316,7 +317,9 @@ class FaceEncoder:
         if self.scene_cut is not None:
             share = self.canonical.facing_share(points)
             sharp = side / LEAST_TEXELS_PER_FACE_PIXEL if side < MAX_TEXTURE_SIZE else np.inf
-            self.better_view = BetterView(share, face_box(points), self.fps, sharp)
+            self.better_view = BetterView(
+                share, face_box(points), self.fps, sharp, eye_openness(points)
+            )
             self._better = False
         meta: dict[str, str | int | float] = {
             "tracker": "markers"
@@ -694,7 +697,7 @@ class FaceEncoder:
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
         if self.better_view is not None and self.better_view.seen(
-            self.canonical.facing_share(points), face_box(points)
+            self.canonical.facing_share(points), face_box(points), eye_openness(found.points)
         ):
             # This frame is drawn as it is; the next one begins a session of this face.
             self._new_scene = self._better = True

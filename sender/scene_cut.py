@@ -61,6 +61,15 @@ BETTER_AFTER_S = 1.0
 #: from where the snapshot saw it (BetterView; talking heads move at most 0.6 of one).
 GROWN = 1.5
 MOVED = 1.0
+#: The face is seen better, too, when its eyes are open where the snapshot's were shut or
+#: cast down (a call begun looking at the keyboard: that texture's lids, and the face pitched
+#: down with them, stayed for the whole call): the lids' gap per eye width
+#: (:func:`eye_openness`) at least EYES_OPENED times the snapshot's and at least OPEN_EYES.
+#: Open eyes on the real clips measure 0.25-0.4, shut ones 0.05-0.13.
+EYES_OPENED = 2.0
+OPEN_EYES = 0.2
+#: (upper lid, lower lid, corner, corner) of each eye among the face's 468 landmarks.
+_EYES = ((159, 145, 33, 133), (386, 374, 362, 263))
 
 #: A scene with no face to draw gets a session without one (its face kept outside the frame,
 #: the scene drawn from its own snapshot frame): a new scene that shows no face NO_FACE_AFTER_S
@@ -99,6 +108,15 @@ def face_box(points: np.ndarray) -> tuple[float, float, float]:
     xy = np.asarray(points, dtype=np.float64)[:, :2]
     lo, hi = xy.min(0), xy.max(0)
     return float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[0] - lo[0])
+
+
+def eye_openness(points: np.ndarray) -> float:
+    """The lids' gap over the eye's width, both eyes' mean, of a tracked face ((468, 2+)
+    image pixels)."""
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    gaps = [float(np.linalg.norm(xy[up] - xy[down])) for up, down, _, _ in _EYES]
+    widths = [max(float(np.linalg.norm(xy[a] - xy[b])), 1e-9) for _, _, a, b in _EYES]
+    return float(np.mean(np.divide(gaps, widths)))
 
 
 def another_face(before: tuple[float, float, float], now: tuple[float, float, float]) -> bool:
@@ -164,15 +182,17 @@ def _apart(a: Features, b: Features, colours_apart: float = HISTOGRAM_CUT) -> bo
 
 class BetterView:
     """Whether a session's face is now seen far better than in its snapshot frame: far more
-    of it, far larger than its texture is sharp for (a person who leans in), or far from where
-    the snapshot saw it (a person who walked: the snapshot's body stays where it was, and the
+    of it, with its eyes open where the snapshot's were shut (a call begun looking down), far
+    larger than its texture is sharp for (a person who leans in), or far from where the
+    snapshot saw it (a person who walked: the snapshot's body stays where it was, and the
     head's surroundings tear as the warp drags them).
 
     share : the snapshot frame's FaceMesh.facing_share; box : its face_box; fps : frames a
     second; sharp_up_to : the face's width beyond which the snapshot's texture holds less than
     the camera sees (infinite: the largest texture there is). A face past it counts once it is
     also GROWN times the snapshot's: a texture sized at the least a face needs is past it
-    whenever the head comes a little closer."""
+    whenever the head comes a little closer. eyes : the snapshot's eye_openness (None: the
+    eyes are not looked at)."""
 
     def __init__(
         self,
@@ -180,19 +200,29 @@ class BetterView:
         box: tuple[float, float, float],
         fps: float,
         sharp_up_to: float = float("inf"),
+        eyes: float | None = None,
     ) -> None:
-        self.share, self.box = share, box
+        self.share, self.box, self.eyes = share, box, eyes
         self.sharp_up_to = max(sharp_up_to, GROWN * box[2])
         self._wait = round(BETTER_AFTER_S * fps)  # frames before a view counts
         self._better = 0  # frames running with a better view
 
-    def seen(self, share: float, box: tuple[float, float, float]) -> bool:
-        """Take a frame's facing share and face box; True (once) when a new snapshot is due."""
+    def seen(
+        self, share: float, box: tuple[float, float, float], eyes: float | None = None
+    ) -> bool:
+        """Take a frame's facing share, face box and eye openness; True (once) when a new
+        snapshot is due."""
         self._wait -= 1
         more = share >= max(self.share + BETTER_SHARE, FRONTAL_SHARE)
         (x0, y0, w0), (x, y, w) = self.box, box
         moved = np.hypot(x - x0, y - y0) > MOVED * w0
-        good = more or w > self.sharp_up_to or moved
+        opened = (
+            self.eyes is not None
+            and eyes is not None
+            and eyes >= max(EYES_OPENED * self.eyes, OPEN_EYES)
+            and share >= FRONTAL_SHARE
+        )
+        good = more or w > self.sharp_up_to or moved or opened
         self._better = self._better + 1 if good else 0
         if self._wait > 0 or self._better < BETTER_FRAMES:
             return False
