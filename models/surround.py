@@ -54,6 +54,7 @@ import logging
 import cv2
 import numpy as np
 
+from facewire.models.fill import fill_invalid
 from facewire.models.thin_plate import ThinPlate, squared_distances
 
 logger = logging.getLogger(__name__)
@@ -86,8 +87,8 @@ PERSON_THRESHOLD = 0.2
 #: its edge fades over as much again. The scene is painted out only inside that reach,
 #: so a frame with no motion comes out exactly as the snapshot.
 PERSON_MARGIN = 0.01
-#: The scene behind the person is painted in at most this many pixels wide, then scaled up.
-INPAINT_WIDTH = 160
+#: The scene behind the person is filled in at most this many pixels wide, then scaled up.
+FILL_WIDTH = 160
 #: The warp's source is the snapshot frame padded by 1/SOURCE_PAD of its longer side.
 SOURCE_PAD = 4
 #: Lines at a frame's edge that differ from the line inside them as no scene does (the black
@@ -516,18 +517,18 @@ def _person_layer(person: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _paint_out(image: np.ndarray, region: np.ndarray) -> np.ndarray:
-    """``image`` with ``region`` painted in from its surroundings (at a reduced size: what
-    shows there is a smooth guess of the scene, and only where the person has moved away)."""
+    """``image`` with ``region`` painted in from its surroundings: a smooth blend of them
+    (models/fill.py, at a reduced size), which shows only where the person has moved away.
+    (Telea's rays drew the shelves beside a head into a star of streaks, seen as soon as the
+    head moved.)"""
     if not region.any():
         return image
     h, w = region.shape
-    scale = min(1.0, INPAINT_WIDTH / w)
+    scale = min(1.0, FILL_WIDTH / w)
     size = (max(1, round(w * scale)), max(1, round(h * scale)))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    small_region = cv2.resize(region.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-    filled = cv2.inpaint(
-        small, cv2.dilate(small_region, np.ones((3, 3), np.uint8)), 3, cv2.INPAINT_TELEA
-    )
+    known = cv2.resize((~region).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    filled = fill_invalid(small, cv2.erode(known, np.ones((3, 3), np.uint8)).astype(bool))
     out = image.copy()
     out[region] = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)[region]
     return out

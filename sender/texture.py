@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
+from facewire.models.fill import fill_invalid
+
 logger = logging.getLogger(__name__)
 
 # Barycentric slack so texels exactly on a shared UV edge are not lost to rounding.
@@ -43,61 +45,6 @@ def _check_triangles(triangles: np.ndarray, n: int) -> np.ndarray:
     if t.size and (t.min() < 0 or t.max() >= n):
         raise ValueError(f"triangle index out of range 0..{n - 1}")
     return t.astype(np.int64)
-
-
-def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill texels where ``valid`` is False from their valid neighbours (push-pull).
-
-    image : (h, w, c) or (h, w) uint8; valid : (h, w) bool.
-    Valid texels are kept; each invalid one takes the mask-weighted average of the
-    nearest coarser pyramid level that has data there, so holes get smooth colours that
-    continue their borders and bilinear sampling at UV seams never reads black.
-    """
-    img = np.asarray(image)
-    if valid.shape != img.shape[:2]:
-        raise ValueError(f"expected valid of shape {img.shape[:2]}, got {valid.shape}")
-    if valid.all():
-        return img.copy()
-    if not valid.any():
-        return np.zeros_like(img)
-    squeeze = img.ndim == 2
-    data = img.astype(np.float32)
-    if squeeze:
-        data = data[:, :, None]
-    w = valid.astype(np.float32)
-
-    # Push: mask-weighted downsampling until one texel is left.
-    levels: list[tuple[np.ndarray, np.ndarray]] = []
-    acc: np.ndarray = data * w[:, :, None]
-    wt: np.ndarray = w
-    while True:
-        levels.append((acc, wt))
-        h, wd = wt.shape
-        if h == 1 and wd == 1:
-            break
-        size = (max(1, (wd + 1) // 2), max(1, (h + 1) // 2))
-        acc = cv2.resize(acc, size, interpolation=cv2.INTER_AREA)
-        wt = cv2.resize(wt, size, interpolation=cv2.INTER_AREA)
-        if acc.ndim == 2:
-            acc = acc[:, :, None]
-
-    # Pull: from the coarsest level down, fill each level's empty texels from the level
-    # above it (already filled), upsampled bilinearly.
-    acc, wt = levels[-1]
-    filled = acc / np.maximum(wt, 1e-12)[:, :, None]
-    for acc, wt in reversed(levels[:-1]):
-        h, wd = wt.shape
-        up = cv2.resize(filled, (wd, h), interpolation=cv2.INTER_LINEAR)
-        if up.ndim == 2:
-            up = up[:, :, None]
-        # Partly covered texels blend their own average with the coarser estimate.
-        a = np.clip(wt, 0.0, 1.0)[:, :, None]
-        own = acc / np.maximum(wt, 1e-12)[:, :, None]
-        filled = a * own + (1.0 - a) * up
-
-    out = np.where(valid[:, :, None], data, filled)
-    out = np.clip(out + 0.5, 0, 255).astype(np.uint8)
-    return out[:, :, 0] if squeeze else out
 
 
 def scan_triangles(tri_xy: np.ndarray, width: int, height: int) -> tuple[np.ndarray, ...]:
@@ -345,6 +292,5 @@ def make_background(
     extent = float(np.ptp(v[:, :2], axis=0).max())
     dilate = max(2, int(round(dilate_fraction * extent)))
     hole = face_hull_mask(frame.shape[:2], v, triangles, dilate)
-    # Push-pull fill: a smooth blend of the surroundings. Telea / Navier-Stokes inpainting
-    # streak a face-sized hole into star patterns; the head is drawn over it anyway.
+    # The head is drawn over it anyway.
     return fill_invalid(frame, ~hole)

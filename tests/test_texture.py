@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from imaging import H, W, gradient_background, psnr, save
 
+from facewire.models.fill import fill_invalid
 from facewire.receiver.render import FaceRenderer
 from facewire.sender.texture import (
     UvRasteriser,
     face_hull_mask,
-    fill_invalid,
     make_background,
     scan_triangles,
     z_buffer,
