@@ -685,19 +685,20 @@ class FaceEncoder:
             self._new_scene, self._jumped_from = True, before
             return None
         base = self.session.mesh.vertices
+        eyes = None  # the lids' opening, as the tracker saw it (markers have no lids)
         if isinstance(found, MarkerFit):
             # Markers: pose and a dense displacement, lifted and spread by the tracker.
             pose = found.pose
             params = self.wires.fit_displacement(found.displacement)
             points = pose.apply(base + found.displacement)
         else:
-            points = found.points
+            points, eyes = found.points, eye_openness(found.points)
             if self.synthesis is not None:
                 points = self.synthesis.refine(image, points)
             pose = estimate_pose(base[self._pose_vertices], points[self._pose_vertices])
             params = self.wires.fit(pose.inverse(points))
         if self.better_view is not None and self.better_view.seen(
-            self.canonical.facing_share(points), face_box(points), eye_openness(found.points)
+            self.canonical.facing_share(points), face_box(points), eyes
         ):
             # This frame is drawn as it is; the next one begins a session of this face.
             self._new_scene = self._better = True
