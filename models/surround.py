@@ -85,8 +85,10 @@ UNFOLD = 1.0
 PERSON_THRESHOLD = 0.2
 #: The person layer reaches this fraction of the frame's width beyond the person mask, and
 #: its edge fades over as much again. The scene is painted out only inside that reach,
-#: so a frame with no motion comes out exactly as the snapshot.
-PERSON_MARGIN = 0.01
+#: so a frame with no motion comes out exactly as the snapshot. About a pixel of the
+#: segmentation (256 wide): what the reach takes in of the scene moves with the person, and
+#: at twice this the shelves and posters beside a moving head or shoulder were dragged along.
+PERSON_MARGIN = 0.005
 #: The scene behind the person is filled in at most this many pixels wide, then scaled up.
 FILL_WIDTH = 160
 #: The warp's source is the snapshot frame padded by 1/SOURCE_PAD of its longer side.

@@ -176,10 +176,27 @@ def test_the_scene_a_moving_head_uncovers_is_a_smooth_guess_not_streaks() -> Non
     save("uncovered_scene.png", np.hstack([image, out]))
     # The old head's left half, left of the new head: no red head, and colours that vary
     # little across it (Telea's blotches and rays: 25 grey levels; the spines: 58-66).
-    uncovered = out[120:220, 192:228].reshape(-1, 3).astype(np.float64)
-    assert (uncovered[:, 2] - uncovered[:, 1] < 100).all()
+    uncovered = out[140:200, 196:232].reshape(-1, 3).astype(np.float64)
+    assert (np.abs(uncovered - (30, 30, 220)).sum(axis=1) > 60).all()
     spread = uncovered.std(axis=0).max()
     assert spread < 0.15 * image[:100].reshape(-1, 3).std(axis=0).min(), spread
+
+
+def test_the_scene_just_beside_a_moving_head_stays_where_it_is() -> None:
+    """The person layer takes in a pixel or two of the scene round the person's mask (the
+    segmentation's edge is soft) and carries it with the head. Reaching 5 px and fading over
+    5 more at this size, it dragged the shelves beside deadline's head along (frame SSIM
+    0.804 against 0.821): 8-11 px beside the moved head the scene is the snapshot's, exactly."""
+    rng = np.random.default_rng(6)
+    spines = rng.integers(20, 240, (1, W // 6, 3), dtype=np.uint8)
+    image = cv2.resize(spines, (W, H), interpolation=cv2.INTER_NEAREST)
+    person = np.zeros((H, W), np.uint8)
+    cv2.ellipse(person, (240, 170), (58, 75), 0, 0, 360, 1, -1)
+    image[person.astype(bool)] = (30, 30, 220)
+    o = outline()
+    out = SurroundWarp(image, o, person.astype(np.float32)).warp(o + [12.0, 0.0])
+    beside = np.s_[150:190, 240 + 58 + 12 + 8 : 240 + 58 + 12 + 12]
+    assert np.array_equal(out[beside], image[beside])
 
 
 def test_a_box_of_the_warp_is_that_part_of_the_whole_warp() -> None:
