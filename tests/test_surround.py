@@ -201,8 +201,8 @@ def test_the_scene_just_beside_a_moving_head_stays_where_it_is() -> None:
 
 def test_what_the_segmentation_doubts_is_scene_and_stays_where_it_is() -> None:
     """A poster's mat above a head, which the segmentation gives a third's chance of being
-    the person (students): taken for person, it sat on her hair as a white hat when she
-    moved. It is scene, and stays where the camera has it."""
+    the person: taken for person, it moved with the head. It is scene, and stays where the
+    camera has it."""
     image, person = person_scene()
     poster = np.s_[60:92, 200:280]  # just above the crown (95)
     image[poster] = 250
