@@ -80,11 +80,10 @@ SMOOTHING = 1e-3
 #: less important one is left out: where the difference reaches the distance the spline folds
 #: (output pixels on both sides show one snapshot pixel, and what lay between is torn open).
 UNFOLD = 1.0
-#: Where the segmentation's probability is above this, the pixel is the person's. Below
-#: one half: a hat or hair half taken for scene tears when the head moves. Not lower: at 0.2
-#: what it half doubted round the people (the table and shelves round paris's two) went with
-#: them, frame SSIM 0.691 against 0.723.
-PERSON_THRESHOLD = 0.4
+#: Where the segmentation's probability is above this, the pixel is the person's. Low: a
+#: hat or hair half taken for scene tears when the head moves, and a body that leans back
+#: leaves its doubtful edges behind (docs/what-we-tried.md, "The streak above the head").
+PERSON_THRESHOLD = 0.2
 #: The person layer reaches this fraction of the frame's width beyond the person mask, and
 #: its edge fades over as much again. The scene is painted out only inside that reach,
 #: so a frame with no motion comes out exactly as the snapshot. About a pixel of the

@@ -199,19 +199,6 @@ def test_the_scene_just_beside_a_moving_head_stays_where_it_is() -> None:
     assert np.array_equal(out[beside], image[beside])
 
 
-def test_what_the_segmentation_doubts_is_scene_and_stays_where_it_is() -> None:
-    """A poster's mat above a head, which the segmentation gives a third's chance of being
-    the person: taken for person, it moved with the head. It is scene, and stays where the
-    camera has it."""
-    image, person = person_scene()
-    poster = np.s_[60:92, 200:280]  # just above the crown (95)
-    image[poster] = 250
-    person[poster] = 0.3
-    o = outline()
-    out = SurroundWarp(image, o, person).warp(o + [0.0, 25.0])
-    assert np.array_equal(out[poster], image[poster])
-
-
 def test_a_box_of_the_warp_is_that_part_of_the_whole_warp() -> None:
     """The sender rebuilds only the receiver's surroundings around the face (sender/edge.py):
     the same pixels as the whole frame's warp has there."""
