@@ -14,12 +14,12 @@ import numpy as np
 
 
 def fill_invalid(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill texels where ``valid`` is False from their valid neighbours (push-pull).
+    """Fill pixels where ``valid`` is False from their valid neighbours (push-pull).
 
     image : (h, w, c) or (h, w) uint8; valid : (h, w) bool.
-    Valid texels are kept; each invalid one takes the mask-weighted average of the
+    Valid pixels are kept; each invalid one takes the mask-weighted average of the
     nearest coarser pyramid level that has data there, so holes get smooth colours that
-    continue their borders and bilinear sampling at UV seams never reads black.
+    continue their borders (and a texture's bilinear sampling at UV seams never reads black).
     """
     img = np.asarray(image)
     if valid.shape != img.shape[:2]:
