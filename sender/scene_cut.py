@@ -65,8 +65,8 @@ MOVED = 1.0
 #: cast down (a call begun looking at the keyboard: that texture's lids, and the face pitched
 #: down with them, stayed for the whole call): the lids' gap per eye width
 #: (:func:`eye_openness`) at least EYES_OPENED times the snapshot's and at least OPEN_EYES.
-#: The tracker's lids on the real clips: open 0.25-0.4, shut 0.05-0.13 (but akiyo's 0.07-0.08
-#: for most of her clip, from 0.38 in her first frame: no later view is twice that).
+#: The tracker's lids on the real clips: open 0.25-0.4, shut or cast down 0.05-0.13 (akiyo
+#: reads her papers for most of her clip, 0.07-0.08; her first frame looks up, 0.38).
 EYES_OPENED = 2.0
 OPEN_EYES = 0.2
 #: (upper lid, lower lid, corner, corner) of each eye among the face's 468 landmarks.
