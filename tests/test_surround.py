@@ -171,6 +171,8 @@ def test_the_scene_a_moving_head_uncovers_is_a_smooth_guess_not_streaks() -> Non
     cv2.ellipse(person, (240, 170), (58, 75), 0, 0, 360, 1, -1)
     cv2.rectangle(person, (150, 240), (330, H - 1), 1, -1)
     image[person.astype(bool)] = (30, 30, 220)
+    # The scene within 15 px round the person: what the guess is made of.
+    ring = cv2.dilate(person, np.ones((31, 31), np.uint8)).astype(bool) & (person == 0)
     o = outline()
     out = SurroundWarp(image, o, person.astype(np.float32)).warp(o + [60.0, 0.0])
     save("uncovered_scene.png", np.hstack([image, out]))
@@ -180,6 +182,9 @@ def test_the_scene_a_moving_head_uncovers_is_a_smooth_guess_not_streaks() -> Non
     assert (np.abs(uncovered - (30, 30, 220)).sum(axis=1) > 60).all()
     spread = uncovered.std(axis=0).max()
     assert spread < 0.15 * image[:100].reshape(-1, 3).std(axis=0).min(), spread
+    # Of the colours round it (a black or grey patch there is no guess of the scene).
+    off = np.abs(uncovered.mean(axis=0) - image[ring].mean(axis=0)).max()
+    assert off < 25.0, off
 
 
 def test_the_scene_just_beside_a_moving_head_stays_where_it_is() -> None:
