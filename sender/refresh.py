@@ -13,14 +13,15 @@ moves (a lock of hair shows where the head was). Each pixel's
 difference is the least over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a
 pixel or two off (which the warp leaves, and the edge's corrections mend) does not count; a
 block whose mean difference stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's
-failure, not a moment's. The largest group of such blocks, grown by a block, is cut from the
-frame and sent as a WebP image of that area; the receiver shows it over its surroundings (under
-the face) from then on, and the sender compares against the picture with it. Where the model
-matches the frame again under a refresh (the hand went down), the area is given back to the
-model with an empty one, whatever the bucket holds; so is a refresh that no longer matches
-while the bucket cannot pay for a new one (the head moved on: frozen, it showed a piece of the
-head where it was). The images are paid from a token bucket of their own (:data:`REFRESH_KBPS`,
-with two seconds of credit: the first one goes at once, the ones after wait for its debt).
+failure, not a moment's. The largest group of such blocks, grown by a block (but not into a
+refresh kept beside it), is cut from the frame and sent as a WebP image of that area; the
+receiver shows it over its surroundings (under the face) from then on, and the sender
+compares against the picture with it. Where the model matches the frame again under a
+refresh (the hand went down), the area is given back to the model with an empty one,
+whatever the bucket holds; so is a refresh that no longer matches while the bucket cannot pay
+for a new one (the head moved on: frozen, it showed a piece of the head where it was). The
+images are paid from a token bucket of their own (:data:`REFRESH_KBPS`, with two seconds of
+credit: the first one goes at once, the ones after wait for its debt).
 
 What stands in front of the face (a hand: sender/occlusion.py finds it in the face's texture)
 is cut with the blocks beside the face that fail next to it (its arm) and shown over the face
@@ -216,11 +217,16 @@ class RefreshMeter:
         due &= (~carried | self._under_shown() | still) & ~self._under_shown(over=True)
         if not due.any():
             return []
-        (c0, r0, c1, r1), size = self._largest(due)
+        grown, tight, size = self._largest(due)
+        c0, r0, c1, r1 = grown
         group = due[r0:r1, c0:c1]
         head: Face | None = None
         if carried[r0:r1, c0:c1][group].mean() >= HEAD_SHARE:
             head = self._faces[-1]  # it goes when the head moves on
+            # Grown only where it takes no kept one's place (below): a flag by carphone's
+            # cheek never showed, its grown box touching a refresh of his car's window.
+            if any(s.head is None and _overlap(s.blocks, grown) for s in self._shown):
+                c0, r0, c1, r1 = tight
         # Where the model alone matches the frame, a refresh there is only in the way; and one
         # that no longer matches and cannot be replaced now is older than the model's picture
         # (a head that moved on): either goes (a few bytes, whatever the bucket holds).
@@ -350,14 +356,16 @@ class RefreshMeter:
             return []
         return [self._cut(seq, image, blocks, None, over=True)]
 
-    def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
+    def _largest(
+        self, due: np.ndarray
+    ) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``
-        blocks, grown by one, and how many blocks the group has."""
+        blocks grown by one, the same not grown, and how many blocks the group has."""
         _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), connectivity=8)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         x, y, w, h, size = (int(v) for v in stats[best, :5])
         box = (max(0, x - 1), max(0, y - 1), min(self.cols, x + w + 1), min(self.rows, y + h + 1))
-        return box, size
+        return box, (x, y, x + w, y + h), size
 
     def _area(self, blocks: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         """Frame pixels (x, y, width, height) of work blocks."""

@@ -174,6 +174,31 @@ def test_something_new_beside_a_head_held_still_is_refreshed(
     assert encoder.refresh is not None and encoder.refresh.bytes > 0
 
 
+def test_something_new_by_a_still_head_is_refreshed_beside_a_refresh_kept_there(
+    photo: np.ndarray,
+) -> None:
+    """Something held by the cheek of a head held still (where the warp carries the picture
+    with the head) is refreshed though a refresh of the scene is kept just beside it: the
+    new one is grown by a block only where it takes no kept one's place. (Grown into it, a
+    flag by carphone's cheek never showed: his car's window was kept beside it.)"""
+    from facewire.sender.refresh import RefreshMeter
+
+    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[160 + 36 * np.cos(angles), 93 + 40 * np.sin(angles), np.zeros(36)]
+    scene = photo.copy()
+    scene[48:96, 272:304] = photo[230:278, 20:52]  # beyond the head's reach: the scene's
+    both = scene.copy()
+    both[48:96, 224:256] = (40, 160, 40)  # by the cheek, within the head's reach
+    meter = RefreshMeter(photo, outline, np.zeros(photo.shape[:2]), 30.0)
+    kept = [p for i in range(1, 16) for p in meter.measure(i, scene, outline, None, None)]
+    assert [(p.clears, p.x) for p in kept] == [(False, 256)]
+    later = [p for i in range(16, 46) for p in meter.measure(i, both, outline, None, None)]
+    assert [p.clears for p in later] == [False], later  # the scene's stays
+    new = later[0]
+    assert new.x <= 224 and new.x + new.width == kept[0].x
+    assert new.y <= 48 and new.y + new.height >= 96
+
+
 def test_a_refresh_beside_the_hair_goes_once_the_head_moves_on(photo: np.ndarray) -> None:
     """A refresh cut beside the hair while the head held still is given back as soon as the
     head has moved on: fixed in the frame, a lock of hair a turn had shown stayed where the
