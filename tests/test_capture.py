@@ -58,3 +58,26 @@ def test_a_looped_file_numbers_on_past_the_frames_left_out(clip: Path) -> None:
     # the input's frames: three loops.
     assert seen == sorted(set(seen)) and seen[-1] < 3 * FRAMES <= seen[-1] + source.dropped + 1
     assert source.dropped > 0 and len(seen) + source.dropped == 3 * FRAMES
+
+
+def test_a_phone_video_held_upright_is_read_upright(tmp_path: Path) -> None:
+    """A phone held upright stores its picture on its side, with a display matrix saying to
+    turn it (MP4's rotation): the sender reads it as the phone showed it, portrait, or the
+    face lies on its side and no face is found."""
+    import av
+
+    portrait = np.full((96, 64, 3), 40, np.uint8)
+    portrait[8:24, 8:24] = 250  # a mark at the top left, as the phone showed it
+    path = tmp_path / "phone.mp4"
+    with av.open(str(path), "w", format="mp4") as out:
+        stream = out.add_stream("libx264", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 96, 64, "yuv420p"
+        stream.set_display_rotation(90)  # stored turned a quarter clockwise
+        stored = np.ascontiguousarray(cv2.rotate(portrait, cv2.ROTATE_90_CLOCKWISE))
+        for _ in range(3):
+            out.mux(stream.encode(av.VideoFrame.from_ndarray(stored, format="bgr24")))
+        out.mux(stream.encode())
+    with VideoSource(path) as video:
+        first = next(iter(video.frames())).image
+    assert first.shape == portrait.shape
+    assert np.abs(first.astype(int) - portrait).mean() < 6
