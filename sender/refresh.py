@@ -13,10 +13,10 @@ moves (a lock of hair shows where the head was). Each pixel's
 difference is the least over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a
 pixel or two off (which the warp leaves, and the edge's corrections mend) does not count; a
 block whose mean difference stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's
-failure, not a moment's. The largest group of such blocks, grown by a block (but not into a
-refresh kept beside it), is cut from the frame and sent as a WebP image of that area; the
-receiver shows it over its surroundings (under the face) from then on, and the sender
-compares against the picture with it. Where the model matches the frame again under a
+failure, not a moment's. The largest group of such blocks, grown by a block (on no side where
+that would take another refresh's place), is cut from the frame and sent as a WebP image of
+that area; the receiver shows it over its surroundings (under the face) from then on, and the
+sender compares against the picture with it. Where the model matches the frame again under a
 refresh (the hand went down), the area is given back to the model with an empty one,
 whatever the bucket holds; so is a refresh that no longer matches while the bucket cannot pay
 for a new one (the head moved on: frozen, it showed a piece of the head where it was). The
@@ -217,16 +217,12 @@ class RefreshMeter:
         due &= (~carried | self._under_shown() | still) & ~self._under_shown(over=True)
         if not due.any():
             return []
-        grown, tight, size = self._largest(due)
-        c0, r0, c1, r1 = grown
+        tight, size = self._largest(due)
+        c0, r0, c1, r1 = self._grown(tight)
         group = due[r0:r1, c0:c1]
         head: Face | None = None
         if carried[r0:r1, c0:c1][group].mean() >= HEAD_SHARE:
             head = self._faces[-1]  # it goes when the head moves on
-            # Grown only where it takes no kept one's place (below): a flag by carphone's
-            # cheek never showed, its grown box touching a refresh of his car's window.
-            if any(s.head is None and _overlap(s.blocks, grown) for s in self._shown):
-                c0, r0, c1, r1 = tight
         # Where the model alone matches the frame, a refresh there is only in the way; and one
         # that no longer matches and cannot be replaced now is older than the model's picture
         # (a head that moved on): either goes (a few bytes, whatever the bucket holds).
@@ -356,16 +352,34 @@ class RefreshMeter:
             return []
         return [self._cut(seq, image, blocks, None, over=True)]
 
-    def _largest(
-        self, due: np.ndarray
-    ) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int], int]:
+    def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``
-        blocks grown by one, the same not grown, and how many blocks the group has."""
+        blocks, and how many blocks the group has."""
         _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), connectivity=8)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         x, y, w, h, size = (int(v) for v in stats[best, :5])
-        box = (max(0, x - 1), max(0, y - 1), min(self.cols, x + w + 1), min(self.rows, y + h + 1))
-        return box, (x, y, x + w, y + h), size
+        return (x, y, x + w, y + h), size
+
+    def _grown(self, box: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        """``box`` grown by a block on each side (an object's edge blocks fail less than its
+        middle), but on no side where that would take another refresh's place: a flag by
+        carphone's cheek never showed, its box grown into a refresh of his car's window."""
+        others = [
+            s.blocks for s in self._shown if not s.packet.over and not _overlap(s.blocks, box)
+        ]
+        c0, r0, c1, r1 = box
+        for side in range(4):
+            wider = [c0, r0, c1, r1]
+            wider[side] += -1 if side < 2 else 1
+            wider = [
+                max(0, wider[0]),
+                max(0, wider[1]),
+                min(self.cols, wider[2]),
+                min(self.rows, wider[3]),
+            ]
+            if not any(_overlap(o, (wider[0], wider[1], wider[2], wider[3])) for o in others):
+                c0, r0, c1, r1 = wider
+        return c0, r0, c1, r1
 
     def _area(self, blocks: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         """Frame pixels (x, y, width, height) of work blocks."""

@@ -179,8 +179,9 @@ def test_something_new_by_a_still_head_is_refreshed_beside_a_refresh_kept_there(
 ) -> None:
     """Something held by the cheek of a head held still (where the warp carries the picture
     with the head) is refreshed though a refresh of the scene is kept just beside it: the
-    new one is grown by a block only where it takes no kept one's place. (Grown into it, a
-    flag by carphone's cheek never showed: his car's window was kept beside it.)"""
+    new one is grown by a block (a 16-px block here) on every side but the one where it
+    would take the kept one's place. (Grown into it, a flag by carphone's cheek never
+    showed: his car's window was kept beside it.)"""
     from facewire.sender.refresh import RefreshMeter
 
     angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
@@ -195,8 +196,8 @@ def test_something_new_by_a_still_head_is_refreshed_beside_a_refresh_kept_there(
     later = [p for i in range(16, 46) for p in meter.measure(i, both, outline, None, None)]
     assert [p.clears for p in later] == [False], later  # the scene's stays
     new = later[0]
-    assert new.x <= 224 and new.x + new.width == kept[0].x
-    assert new.y <= 48 and new.y + new.height >= 96
+    assert new.x == 224 - 16 and new.x + new.width == kept[0].x  # grown, but not into it
+    assert new.y == 48 - 16 and new.y + new.height == 96 + 16
 
 
 def test_a_refresh_beside_the_hair_goes_once_the_head_moves_on(photo: np.ndarray) -> None:
