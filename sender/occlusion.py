@@ -36,6 +36,9 @@ COVERED = 30.0
 MIN_FACING = 0.3
 #: Blocks with fewer seen texels than this share take no part.
 MIN_SEEN = 1 / 3
+#: Which texels something else of the face hides is found on the face scaled to at most this
+#: many pixels wide (twice the texture's side).
+HIDDEN_WIDTH = 2 * SIDE
 #: The covered blocks' place in the frame is grown by this share of its size each way.
 GROW = 0.25
 
@@ -69,7 +72,12 @@ class FaceOcclusion:
         ``image`` (h, w, 3) BGR, the face drawn at ``vertices`` (n, 3) image space; None when
         nothing is. ``still``: whether the head held its place since the last measurement
         (a block's change is then no turn of it)."""
-        texture, valid = self._rasteriser.sample(image, vertices, MIN_FACING)
+        # What is hidden behind the nose, found on the face scaled to about HIDDEN_WIDTH
+        # pixels: at the frame's own size that z-buffer took 16 ms at 640x480 (the sender's
+        # p90 frame 27 ms against 11), for a texture of SIDE texels.
+        width = float(np.ptp(np.asarray(vertices)[:, 0]))
+        scale = min(1.0, HIDDEN_WIDTH / width) if width > 0 else 1.0
+        texture, valid = self._rasteriser.sample(image, vertices, MIN_FACING, hidden_scale=scale)
         luma = cv2.cvtColor(texture, cv2.COLOR_BGR2GRAY).astype(np.float32)
         seen = valid & self._looked
         if seen.sum() < BLOCK * BLOCK:

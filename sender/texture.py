@@ -208,11 +208,14 @@ class UvRasteriser:
         image_vertices: np.ndarray,
         min_facing: float,
         hidden: bool = True,
+        hidden_scale: float = 1.0,
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`unwrap` of an (h, w) or (h, w, c) image without the filling: the texture
         (what lies under invalid texels is undefined) and the (size, size) bool valid texels.
         ``hidden`` False skips the test for texels behind another part of the mesh (a
-        z-buffer of the whole frame: most of the cost), leaving facing and in-frame."""
+        z-buffer of the face: most of the cost, growing with its pixels), leaving facing and
+        in-frame; ``hidden_scale`` below 1 makes that test on the image scaled by it (for a
+        texture far coarser than the frame: the rim left out grows to 1 / scale pixels)."""
         pts, facing = self.texel_positions(image_vertices)
         h, w = image.shape[:2]
         s = self.size
@@ -230,15 +233,20 @@ class UvRasteriser:
         ok = facing > min_facing
         ok &= (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
         if hidden:
-            ok[ok] = self._visible(image_vertices, pts[ok], w, h)
+            ok[ok] = self._visible(image_vertices, pts[ok], w, h, hidden_scale)
         valid_flat = np.zeros(s * s, dtype=bool)
         valid_flat[self._flat_index] = ok
         return texture, valid_flat.reshape(s, s)
 
-    def _visible(self, image_vertices: np.ndarray, pts: np.ndarray, w: int, h: int) -> np.ndarray:
+    def _visible(
+        self, image_vertices: np.ndarray, pts: np.ndarray, w: int, h: int, scale: float = 1.0
+    ) -> np.ndarray:
         """(k,) bool: the points (k, 3) are the nearest surface at their pixel, and not on
-        the outline."""
+        the outline; with ``scale`` below 1, of the image scaled by it (x, y and z alike)."""
         v = np.asarray(image_vertices, dtype=np.float64)
+        if scale != 1.0:
+            v, pts = v * scale, pts * scale
+            w, h = max(1, int(np.ceil(w * scale))), max(1, int(np.ceil(h * scale)))
         zbuf = z_buffer(v, self.triangles, w, h)
         # Bilinear sampling within a pixel of the silhouette mixes in what lies behind the
         # head (hair, background): treat a 1-pixel rim inside the outline as hidden.
