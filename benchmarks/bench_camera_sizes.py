@@ -236,18 +236,29 @@ def main() -> None:
             faces[name] = float(np.median([face for _, _, face in rows]))
             send = [w["sender frame"] for _, w, _ in rows]
             recv = [w["receiver frame"] + w["recording"] for _, w, _ in rows]
-            # Medians, and means: the refreshes are compared every few frames only.
+            # Medians, means and p90s: the refreshes are compared every fourth frame only.
             walls[name] = tuple(
-                1000 * float(f(t)) for f in (np.median, np.mean) for t in (send, recv)
+                1000 * float(f(t)) for f in (np.median, np.mean, _p90) for t in (send, recv)
             )
     print(f"load average {os.getloadavg()[0]:.2f}; {args.frames} frames per clip")
     print(header)
     print("face width (px)".ljust(24) + "".join(f"{faces[n]:18.0f}" for n in names))
     for stage in (*SENDER, *RECEIVER):
         print(stage.ljust(24) + "".join(f"{columns[n][stage]:18.2f}" for n in names))
-    labels = ("sender wall ms", "receiver wall ms", "sender wall ms, mean", "receiver, mean")
+    labels = (
+        "sender wall ms",
+        "receiver wall ms",
+        "sender wall ms, mean",
+        "receiver, mean",
+        "sender wall ms, p90",
+        "receiver, p90",
+    )
     for index, label in enumerate(labels):
         print(label.ljust(24) + "".join(f"{walls[n][index]:18.2f}" for n in names))
+
+
+def _p90(values: list[float]) -> float:
+    return float(np.percentile(values, 90))
 
 
 if __name__ == "__main__":
