@@ -367,19 +367,12 @@ class RefreshMeter:
         others = [
             s.blocks for s in self._shown if not s.packet.over and not _overlap(s.blocks, box)
         ]
-        c0, r0, c1, r1 = box
-        for side in range(4):
-            wider = [c0, r0, c1, r1]
-            wider[side] += -1 if side < 2 else 1
-            wider = [
-                max(0, wider[0]),
-                max(0, wider[1]),
-                min(self.cols, wider[2]),
-                min(self.rows, wider[3]),
-            ]
-            if not any(_overlap(o, (wider[0], wider[1], wider[2], wider[3])) for o in others):
-                c0, r0, c1, r1 = wider
-        return c0, r0, c1, r1
+        for side in ((-1, 0, 0, 0), (0, -1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)):
+            c0, r0, c1, r1 = (a + b for a, b in zip(box, side, strict=True))
+            wider = (max(0, c0), max(0, r0), min(self.cols, c1), min(self.rows, r1))
+            if not any(_overlap(o, wider) for o in others):
+                box = wider
+        return box
 
     def _area(self, blocks: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         """Frame pixels (x, y, width, height) of work blocks."""
