@@ -512,7 +512,7 @@ def _receive_session(
         needed = snapshot.seq  # the first frame not decoded yet
         while True:
             if stop():
-                return player.ended("stopped")
+                return player.ended("stopped", broken=broken)
             try:
                 waited_from = now_us()
                 packet = endpoint.recv(timeout_ms=_ms(playout.wait_us(waited_from) / 1e6))
@@ -573,9 +573,9 @@ def _receive_session(
                     player.run(playout.poll(now_us()), endpoint)
                 _note_playout(report, playout)
                 report.frames_held += _hold(out, player.last, packet.seq - player.next_seq)
-                return player.ended("bye")
+                return player.ended("bye", broken=broken, end_seq=packet.seq)
             if packet is None and not playout.pending and not endpoint.peer_alive:
-                return player.ended("peer lost")
+                return player.ended("peer lost", broken=broken)
     finally:
         for key, value in decoder.rem_counts().items():
             report.rem[key] = _added(report.rem.get(key), value)
@@ -638,7 +638,24 @@ class _Player:
         self.out.show(self.last, values.seq, ready, 0.0)
         self.report.busy_s += time.perf_counter() - start
 
-    def ended(self, reason: str, session: int | None = None) -> _Ended:
+    def ended(
+        self,
+        reason: str,
+        session: int | None = None,
+        *,
+        broken: bool = False,
+        end_seq: int | None = None,
+    ) -> _Ended:
+        """The session is over. ``broken``: its chain was broken at the end (the picture froze
+        and no packet came to end the freeze); ``end_seq``: the frame after its last (default:
+        after the last one recorded)."""
+        if broken and self.stale_from is None and self.last is not None:
+            self.stale_from = self.next_seq
+        end = self.next_seq if end_seq is None else end_seq
+        if self.stale_from is not None and end > self.stale_from:
+            # Frozen until the end: a freeze all the same, which the report must not hide.
+            self.report.freezes.append((self.stale_from, end - self.stale_from))
+            self.stale_from = None
         return _Ended(reason, session, self.last, self.next_seq)
 
     def run(self, steps: list[Step], endpoint: ReceiverEndpoint) -> None:

@@ -11,6 +11,7 @@ the sender sent (or the last one before a gap), never a neutral or a wrong face.
 from __future__ import annotations
 
 import random
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -130,12 +131,16 @@ def test_one_second_bursts_of_total_loss(tmp_path: Path, keys: Keys) -> None:
     check_pictures(snapshot, link, report, video)
 
 
+@dataclass
 class KeyframesLost(LossyLink):
-    """Loses frame 60's packets, then every keyframe up to frame 180 (a full thin link drops
-    the large packets): the chain stays broken for 4 s while the small deltas get through."""
+    """Loses frame 60's packets, then every keyframe up to frame ``until`` (a full thin link
+    drops the large packets): the chain stays broken for 3 s while the small deltas get
+    through."""
+
+    until: int = 150
 
     def __call__(self, packet: KeyFrame | DeltaFrame | RemPatch) -> None:
-        if 60 <= self.seq < 180 and (self.seq == 60 or isinstance(packet, KeyFrame)):
+        if 60 <= self.seq < self.until and (self.seq == 60 or isinstance(packet, KeyFrame)):
             self.sent.append((self.seq, bytes(packet)))
             self.lost.append(self.seq)
         else:
@@ -158,8 +163,25 @@ def test_a_chain_broken_for_long_asks_for_keyframes_less_and_less_often(
         report = receiver.report()
     assert report["frames_out"] == FRAMES
     check_freezes(report, snapshot, link.lost)
-    # 4 s broken: requests at 0, 0.25, 0.75, 1.75 and 3.75 s, and one after (16 at 0.25 s).
+    # Requests at 0, 0.25, 0.75 and 1.75 s are lost; the one at 3.75 s brings the picture
+    # back, near frame 175 (16 requests at 0.25 s). A 4-s break ended by the request at
+    # 5.75 s, near frame 235, came back after the call's end on a busy machine.
     assert report["keyframe_requests"] <= 8, report["keyframe_requests"]
+    assert all(first + length < FRAMES - LAG for first, length in report["freezes"]), report
+
+
+def test_a_picture_frozen_until_the_call_ends_is_reported(tmp_path: Path, keys: Keys) -> None:
+    """Every keyframe after frame 60's loss is lost to the end: the picture never comes back,
+    and the report says it froze (it said nothing froze when no picture ended the freeze)."""
+    encoder, snapshot, frames = start_sender(FRAMES)
+    with SenderEndpoint(HOST, **keys.sender()) as endpoint:
+        endpoint.set_snapshot(snapshot)
+        receiver = ReceiverProcess(endpoint.ports, tmp_path / "out.mp4", **keys.receiver())
+        wait_ready(endpoint, receiver)
+        send(endpoint, encoder, frames, KeyframesLost(endpoint, until=FRAMES))
+        report = receiver.report()
+    assert report["frames_out"] == FRAMES
+    assert report["freezes"] == [[60, FRAMES - 60]], report["freezes"]
 
 
 def test_receiver_killed_and_a_new_one_joins_late(tmp_path: Path, keys: Keys) -> None:
