@@ -60,9 +60,11 @@ MIN_LATENCY_US = 140_000
 #: A step due this much later after its capture than the latency needs now (the first
 #: packets of a call are often slow, or stamped off the later ones' pace: the run's start
 #: then sets too long a latency for all of it) makes the run catch up, µs ...
-CATCH_UP_US = FRAME_US
-#: ... by leaving out a step this quiet (RMS, int16; about -40 dBFS): a pause between words
-#: is 20 ms shorter on the device, and the recording keeps it.
+CATCH_UP_US = 2_000
+#: ... by leaving out as much of a step this quiet (RMS, int16; about -40 dBFS), in whole ms,
+#: up to all of it: a pause between words is shorter on the device, and the recording keeps
+#: it. (Whole steps only, the run stayed up to 20 ms later than needed: +100 ms behind the
+#: demo's face where +87 would do.)
 QUIET_RMS = 330.0
 #: A packet that comes later than its step (capture to arrival under this, µs) makes the
 #: playing run wait 20 ms more (a step of the codec's concealment on the device).
@@ -248,7 +250,7 @@ class AudioReport:
     played: int = 0  # 20 ms steps played from a packet
     concealed: int = 0  # steps the codec made up (loss, or the start of DTX silence)
     silent: int = 0  # steps of silence after CONCEAL_FRAMES
-    shortened: int = 0  # quiet steps left out on the device to bring the latency down
+    shortened: int = 0  # quiet steps cut short or left out on the device (latency down)
     stretched: int = 0  # steps of concealment put in on the device after a late packet
     late: int = 0  # packets that came after their step was played
     dropped: int = 0  # too far ahead, duplicates
@@ -513,15 +515,16 @@ class AudioPlayout:
                 self.sink.write(self._decoder.conceal())
                 self.report.stretched += 1
                 continue
-            if self._play(step, base_capture + (step - base_step) * FRAME_US, due):
-                with self._lock:  # the rest of the run plays a step earlier
-                    self._base = (base_step, base_capture, base_due - FRAME_US)
+            left_out_us = self._play(step, base_capture + (step - base_step) * FRAME_US, due)
+            if left_out_us:
+                with self._lock:  # the rest of the run plays that much earlier
+                    self._base = (base_step, base_capture, base_due - left_out_us)
 
-    def _play(self, step: int, run_us: int, due_us: int) -> bool:
+    def _play(self, step: int, run_us: int, due_us: int) -> int:
         """Play ``step``, due on the device at ``due_us``; ``run_us`` is its capture time
         counted from the run's start (the recording places it there, so a run is written
-        without seams). A quiet step due more than CATCH_UP_US later than needed is left out
-        on the device; True when it was."""
+        without seams). Of a quiet step due CATCH_UP_US or more later than needed, as much as
+        it is late is left out on the device (its end); returns how much, µs."""
         with self._lock:
             packet = self._buffer.pop(step, None)
             decoded = self._decoded.pop(step, None)
@@ -553,16 +556,18 @@ class AudioPlayout:
             else:
                 pcm = np.zeros(AUDIO_FRAME_SAMPLES, np.int16)
                 report.silent += 1
-        shorten = (
-            stamp is not None
-            and due_us - stamp - self._latency() > CATCH_UP_US
-            and float(np.sqrt(np.mean(pcm.astype(np.float64) ** 2))) < QUIET_RMS
-        )
+        late_ms = 0 if stamp is None else (due_us - stamp - self._latency()) // 1000
+        if late_ms * 1000 < CATCH_UP_US or (
+            float(np.sqrt(np.mean(pcm.astype(np.float64) ** 2))) >= QUIET_RMS
+        ):
+            late_ms = 0
+        left_out = min(AUDIO_FRAME_SAMPLES, late_ms * AUDIO_RATE // 1000)
         self._timeline.put(run_us, pcm, stamp)
-        if shorten:
+        if left_out:
             report.shortened += 1
-            return True
-        self.sink.write(pcm)
+        if left_out == AUDIO_FRAME_SAMPLES:
+            return FRAME_US
+        self.sink.write(pcm[: AUDIO_FRAME_SAMPLES - left_out])
         played = self._clock() + self.sink.latency_us
         face = self._face_latency()
         if stamp is not None and face is not None and len(report.latency_us) < MAX_SAMPLES:
@@ -570,7 +575,7 @@ class AudioPlayout:
         with self._lock:
             if self._missing >= RESYNC_FRAMES and not self._buffer and not self._decoded:
                 self._next = None  # a pause: the next run chooses its latency again
-        return False
+        return left_out * 1_000_000 // AUDIO_RATE
 
     # --- the end ---------------------------------------------------------------------------
 
