@@ -3,16 +3,18 @@ rest of the picture.
 
 Usage:
   PYOPENGL_PLATFORM=egl python benchmarks/bench_refresh.py --input CLIP [--input CLIP ...]
-      [--frames N] [--object [--place chin|cheek|over]] [--pictures DIR]
+      [--frames N] [--object [--place chin|cheek|over] [--hand]] [--pictures DIR]
 
 Each clip runs twice through both ends in one process (facewire/loopback.py: real codecs,
 packets as bytes), without refreshes and with them, every frame rebuilt and compared with its
 input: face, head and frame SSIM (facewire/quality.py, regions from the input's own
 landmarks) and the refreshes' kbit/s. With ``--object`` an object is held up beside the chin
 from 1 s to 2 s: a real photographed texture (the flag of tests/fixtures/astronaut_face.jpg,
-0.45 face widths wide), pasted in, as no clip here has a hand raised; then also printed: the
-frames from its coming until the receiver shows it (its area within SHOWN_LEVELS of the input,
-mean absolute difference 25 at most) and from its going until the scene is back.
+0.45 face widths wide), pasted in, as no clip here has a hand raised; with ``--hand`` a hand
+instead (the left one of tests/fixtures/hands.jpg, fingers up, 0.8 face widths wide, its
+white background left out), which the palm detector can find. Then also printed: the frames
+from its coming until the receiver shows it (its area within SHOWN_LEVELS of the input, mean
+absolute difference 25 at most) and from its going until the scene is back.
 """
 
 from __future__ import annotations
@@ -32,7 +34,11 @@ from facewire.sender.capture import CapturedFrame  # noqa: E402
 from facewire.sender.encoder import FaceEncoder  # noqa: E402
 from facewire.sender.landmarks import LandmarkTracker  # noqa: E402
 
-FIXTURE = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "astronaut_face.jpg"
+FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"
+FIXTURE = FIXTURES / "astronaut_face.jpg"
+HANDS = FIXTURES / "hands.jpg"
+#: Of hands.jpg: grey levels above this in every channel are its white background.
+WHITE = 225
 #: The area counts as shown when within this mean absolute difference of the input (the model
 #: misses it by 80-100; a WebP of the striped object keeps 15-20 of it).
 SHOWN_LEVELS = 25.0
@@ -52,11 +58,11 @@ def read(path: str, count: int) -> tuple[list[np.ndarray], float]:
 
 
 def hold_object(
-    frames: list[np.ndarray], fps: float, place: str = "chin"
+    frames: list[np.ndarray], fps: float, place: str = "chin", hand: bool = False
 ) -> tuple[list[np.ndarray], tuple[slice, slice], int, int]:
-    """``frames`` with the object held from 1 s to 2 s beside the chin (``place`` "chin"),
-    beside the cheek at the eyes' height ("cheek", within the head's reach), or over the
-    chin and jaw, half on the face ("over"); its area and the first frames with it and
+    """``frames`` with the object (or a hand) held from 1 s to 2 s beside the chin (``place``
+    "chin"), beside the cheek at the eyes' height ("cheek", within the head's reach), or over
+    the chin and jaw, half on the face ("over"); its area and the first frames with it and
     without it again."""
     points = LandmarkTracker().track(frames[0])
     if points is None:
@@ -64,10 +70,16 @@ def hold_object(
     p = points.points
     h, w = frames[0].shape[:2]
     face = float(np.ptp(p[:, 0]))
-    ow = max(8, int(0.45 * face))
-    oh = int(1.5 * ow)
-    flag = cv2.imread(str(FIXTURE))[150:260, 0:70]
-    thing = cv2.resize(flag, (ow, oh), interpolation=cv2.INTER_AREA)
+    if hand:
+        left = cv2.imread(str(HANDS))[:, 50:345]
+        ow = max(8, int(0.8 * face))
+        oh = round(ow * left.shape[0] / left.shape[1])
+    else:
+        left = cv2.imread(str(FIXTURE))[150:260, 0:70]
+        ow = max(8, int(0.45 * face))
+        oh = int(1.5 * ow)
+    thing = cv2.resize(left, (ow, oh), interpolation=cv2.INTER_AREA)
+    keep = ~(thing.min(axis=2) > WHITE) if hand else np.ones(thing.shape[:2], bool)
     x = min(int(p[:, 0].max() + 0.05 * face), w - ow)
     y = max(0, min(int(p[:, 1].max() - 0.8 * oh), h - oh))
     if place == "cheek":
@@ -79,7 +91,7 @@ def hold_object(
     start, end = round(fps), round(2 * fps)
     out = [f.copy() for f in frames]
     for image in out[start:end]:
-        image[area] = thing
+        image[area][keep] = thing[keep]
     return out, area, start, end
 
 
@@ -113,6 +125,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--object", action="store_true")
     parser.add_argument("--place", choices=("chin", "cheek", "over"), default="chin")
+    parser.add_argument("--hand", action="store_true")
     parser.add_argument("--pictures", type=Path)
     args = parser.parse_args()
     cv2.setNumThreads(1)
@@ -120,7 +133,7 @@ def main() -> None:
         frames, fps = read(path, args.frames)
         area, start, end = None, 0, 0
         if args.object:
-            frames, area, start, end = hold_object(frames, fps, args.place)
+            frames, area, start, end = hold_object(frames, fps, args.place, args.hand)
         name = Path(path).stem
         for refresh in (False, True):
             tag = f"{name}_{'refresh' if refresh else 'model'}"

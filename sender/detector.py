@@ -25,7 +25,6 @@ OUTPUT_LAYERS = ["regressors", "classificators"]
 # SSD anchor layout of the short-range model: one feature map per stride, and layers
 # sharing a stride are merged, so stride 8 has 2 anchors per cell and stride 16 has 6.
 _ANCHOR_LAYOUT = ((8, 2), (16, 6))
-N_KEYPOINTS = 6
 KEYPOINT_NAMES = ("right_eye", "left_eye", "nose_tip", "mouth", "right_ear", "left_ear")
 """Keypoint order; "right" is the face's right, i.e. image left for a frontal face."""
 
@@ -35,11 +34,12 @@ def model_path(name: str) -> Path:
     return Path(str(resources.files("facewire.sender") / "data" / name))
 
 
-def ssd_anchors() -> np.ndarray:
-    """(896, 2) anchor centres, normalised [0, 1] input coordinates (x, y)."""
+def ssd_anchors(size: int = INPUT_SIZE) -> np.ndarray:
+    """(n, 2) anchor centres of a ``size``-pixel input (896 at 128), normalised [0, 1] input
+    coordinates (x, y). MediaPipe's palm detector has the same layout at 192."""
     out = []
     for stride, per_cell in _ANCHOR_LAYOUT:
-        fm = INPUT_SIZE // stride
+        fm = size // stride
         c = (np.arange(fm) + 0.5) / fm
         xx, yy = np.meshgrid(c, c)
         cells = np.stack([xx.ravel(), yy.ravel()], axis=1)
@@ -71,18 +71,19 @@ class Detection:
 
 
 def decode(
-    regressors: np.ndarray, logits: np.ndarray, anchors: np.ndarray
+    regressors: np.ndarray, logits: np.ndarray, anchors: np.ndarray, size: int = INPUT_SIZE
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw SSD outputs -> boxes, keypoints and scores in normalised input coordinates.
+    """Raw SSD outputs of a ``size``-pixel input -> boxes, keypoints and scores in normalised
+    input coordinates.
 
-    regressors : (896, 16) float; logits : (896,) float; anchors : (896, 2).
-    Returns boxes (896, 4) (x0, y0, x1, y1), keypoints (896, 6, 2), scores (896,).
+    regressors : (n, 4 + 2k) float; logits : (n,) float; anchors : (n, 2).
+    Returns boxes (n, 4) (x0, y0, x1, y1), keypoints (n, k, 2), scores (n,).
     """
-    r = regressors.astype(np.float64) / INPUT_SIZE
+    r = regressors.astype(np.float64) / size
     centre = r[:, :2] + anchors
     half = r[:, 2:4] / 2
     boxes = np.concatenate([centre - half, centre + half], axis=1)
-    kps = r[:, 4:].reshape(-1, N_KEYPOINTS, 2) + anchors[:, None, :]
+    kps = r[:, 4:].reshape(len(r), -1, 2) + anchors[:, None, :]
     # Clip like MediaPipe so exp() cannot overflow on garbage input.
     scores = 1.0 / (1.0 + np.exp(-np.clip(logits.astype(np.float64), -100, 100)))
     return boxes, kps, scores
@@ -105,7 +106,7 @@ def weighted_nms(
     """MediaPipe-style blending NMS: each kept box is the score-weighted mean of its cluster.
 
     Averaging the overlapping anchors steadies the keypoints that set the crop's roll.
-    Returns (box (4,), keypoints (6, 2), score) best first.
+    Returns (box (4,), keypoints (k, 2), score) best first.
     """
     order = np.argsort(-scores)
     boxes, kps, scores = boxes[order], kps[order], scores[order]
@@ -122,6 +123,19 @@ def weighted_nms(
         kp = (kps[members] * w[:, None, None]).sum(axis=0)
         out.append((box, kp, float(scores[i])))
     return out
+
+
+def square_input(frame_bgr: np.ndarray, size: int) -> tuple[np.ndarray, int, np.ndarray]:
+    """``frame_bgr`` padded to a centred square (so a network sees it undistorted) and
+    resized to ``size``; the square's side and the frame's (x, y) offset in it, pixels."""
+    h, w = frame_bgr.shape[:2]
+    side = max(h, w)
+    top, left = (side - h) // 2, (side - w) // 2
+    square = cv2.copyMakeBorder(
+        frame_bgr, top, side - h - top, left, side - w - left, cv2.BORDER_CONSTANT, value=0
+    )
+    small = cv2.resize(square, (size, size), interpolation=cv2.INTER_AREA)
+    return small, side, np.array([left, top], dtype=np.float64)
 
 
 class FaceDetector:
@@ -151,21 +165,13 @@ class FaceDetector:
             raise ValueError(
                 f"expected (h, w, 3) uint8 BGR frame, got {frame_bgr.shape} {frame_bgr.dtype}"
             )
-        h, w = frame_bgr.shape[:2]
-        side = max(h, w)
-        # Pad to a centred square so the model sees undistorted faces.
-        top, left = (side - h) // 2, (side - w) // 2
-        square = cv2.copyMakeBorder(
-            frame_bgr, top, side - h - top, left, side - w - left, cv2.BORDER_CONSTANT, value=0
-        )
-        small = cv2.resize(square, (INPUT_SIZE, INPUT_SIZE), interpolation=cv2.INTER_AREA)
+        small, side, offset = square_input(frame_bgr, INPUT_SIZE)
         out = self.net.run(rgb_input(small, 1 / 127.5, -1.0))
         regressors, logits = (out[name] for name in OUTPUT_LAYERS)
         boxes, kps, scores = decode(regressors[0], logits.reshape(-1), self.anchors)
         keep = scores >= self.min_score
         if not keep.any():
             return []
-        offset = np.array([left, top], dtype=np.float64)
         # Normalised coordinates are continuous ([0, 1] spans the whole square); shift by
         # half a pixel to OpenCV's pixel-centre convention.
         to_px = np.float64(side)

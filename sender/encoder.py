@@ -68,6 +68,7 @@ from facewire.sender.fit_residual import FitResidual
 from facewire.sender.landmarks import Landmarks, LandmarkTracker, crop_from_points
 from facewire.sender.lift import MarkerFaceTracker, MarkerFit
 from facewire.sender.occlusion import FaceOcclusion
+from facewire.sender.palms import HeldPalms, PalmDetector
 from facewire.sender.rate_cap import BODY_KBPS, EDGE_KBPS, GEOMETRY_KBPS, RateCap
 from facewire.sender.refresh import REFRESH_KBPS, RefreshMeter
 from facewire.sender.rem import RemEncoder
@@ -238,6 +239,8 @@ class FaceEncoder:
         self.use_refresh, self.refresh_kbps = refresh, refresh_kbps
         #: What the receiver's picture misses, sent as it is (None: off).
         self.refresh: RefreshMeter | None = None
+        #: Finds hands held up near the face for the refreshes (made at the first session).
+        self._palms: PalmDetector | None = None
         self._refresh_again = False  # a receiver asked for a keyframe: send them again
         #: The frame packets' rate cap (None: every frame that changed sends).
         self.rate_cap = None if geometry_kbps is None else RateCap(geometry_kbps, fps)
@@ -371,9 +374,11 @@ class FaceEncoder:
             if self.smoothing:
                 self._edge_smoother = ChannelSmoother({EDGE: self.steps[EDGE]})
         if self.use_refresh:
+            if self._palms is None:
+                self._palms = PalmDetector()
             self.refresh = RefreshMeter(
                 shown, at_snapshot, shown_people, self.fps, self.refresh_kbps,
-                self._occlusion(mesh, shown_texture),
+                self._occlusion(mesh, shown_texture), HeldPalms(self._palms),
             )  # fmt: skip
         self._smoother = ChannelSmoother(self.steps) if self.smoothing else None
         self.intended = None

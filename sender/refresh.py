@@ -44,6 +44,7 @@ from facewire.models.surround import SurroundWarp, carried_by_head
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Refresh
 from facewire.sender.occlusion import FaceOcclusion
+from facewire.sender.palms import HeldPalms
 from facewire.sender.rate_cap import RateCap
 
 logger = logging.getLogger(__name__)
@@ -75,6 +76,9 @@ STILL_S = 0.25
 #: A refresh whose failing blocks lie at least this share where the warp carries the
 #: surroundings with the head goes when the head moves on.
 HEAD_SHARE = 0.5
+#: A hand held in place (sender/palms.py) within this many face widths of the face's centre
+#: is one held up by it: its blocks may be cut whatever the head does.
+HAND_REACH = 1.5
 #: What stands in front of the face is cut again when its area has moved so that it shares
 #: less than this (intersection over union) with the one shown.
 SAME_AREA = 0.6
@@ -116,10 +120,14 @@ class RefreshMeter:
         fps: float,
         kbps: float = REFRESH_KBPS,
         occlusion: FaceOcclusion | None = None,
+        palms: HeldPalms | None = None,
     ) -> None:
         self.height, self.width = background.shape[:2]
         #: Finds what stands in front of the face, sent over it (None: not looked for).
         self.occlusion = occlusion
+        #: Finds hands held up near the face (None: not looked for), and those it last found.
+        self.palms = palms
+        self._hands: list[np.ndarray] = []
         self.reduce = k = max(1, self.width // WORK_WIDTH)
         shift = 0.5 / k - 0.5
         self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])
@@ -185,6 +193,9 @@ class RefreshMeter:
         the face's (n, 3) as drawn, to look for what is in front of it."""
         can_send = self.bucket.next_frame()
         self._frames += 1
+        if self.palms is not None and (self._frames - 1) % EVERY == EVERY // 2:
+            # Half-way between two comparisons: no frame pays for both (4 ms and 6).
+            self._hands = self.palms.update(image)
         if (self._frames - 1) % EVERY:
             return []
         poly = self._work(outline)
@@ -204,6 +215,7 @@ class RefreshMeter:
             if packets:
                 return self._spent(packets)
         carried, still = self._head_blocks(poly), self._held_still()
+        hand = self._hand_blocks(poly)
         # A refresh cut where the head carries the surroundings (while it held still) goes
         # once the head has moved on from where it was: a lock of hair, fixed in the frame,
         # showed where the head had been for 20 frames (Claire), as hair over hair differs
@@ -214,14 +226,18 @@ class RefreshMeter:
         # Nothing new is cut where the warp carries the surroundings with a moving head, but
         # a refresh reaching in there that no longer matches is still given back or replaced.
         # What is shown over the face is the occlusion's to keep or give back.
-        due &= (~carried | self._under_shown() | still) & ~self._under_shown(over=True)
+        # A hand held up there stays where it is while the head moves: it may be cut.
+        due &= (~carried | self._under_shown() | still | hand) & ~self._under_shown(over=True)
         if not due.any():
             return []
-        tight, size = self._largest(due)
+        tight, size = self._largest(due, hand)
         c0, r0, c1, r1 = self._grown(tight)
         group = due[r0:r1, c0:c1]
         head: Face | None = None
-        if carried[r0:r1, c0:c1][group].mean() >= HEAD_SHARE:
+        if (
+            carried[r0:r1, c0:c1][group].mean() >= HEAD_SHARE
+            and not hand[r0:r1, c0:c1][group].any()
+        ):
             head = self._faces[-1]  # it goes when the head moves on
         # Where the model alone matches the frame, a refresh there is only in the way; and one
         # that no longer matches and cannot be replaced now is older than the model's picture
@@ -278,6 +294,21 @@ class RefreshMeter:
         scaled = (poly[:, :2] / BLOCK - 0.5).round().astype(np.int32)
         cv2.fillPoly(mask, [scaled], 1)
         return mask.astype(bool)
+
+    def _hand_blocks(self, poly: np.ndarray) -> np.ndarray:
+        """(rows, cols) bool: blocks of the hands held in place (sender/palms.py) within
+        HAND_REACH face widths of the face (``poly``, its outline in work pixels)."""
+        hand = np.zeros((self.rows, self.cols), bool)
+        xy = poly[:, :2]
+        centre, width = xy.mean(0), float(np.ptp(xy[:, 0]))
+        for box in self._hands:
+            corners = self._work(box.reshape(2, 2))
+            if np.hypot(*(corners.mean(0) - centre)) > HAND_REACH * width:
+                continue
+            c0, r0 = np.floor(corners[0] / BLOCK).astype(int).clip(0)
+            c1, r1 = np.ceil(corners[1] / BLOCK).astype(int).clip(0)
+            hand[r0:r1, c0:c1] = True
+        return hand
 
     def _head_blocks(self, poly: np.ndarray) -> np.ndarray:
         """(rows, cols) bool: blocks whose centre the warp carries with the head (hair, ears:
@@ -352,11 +383,14 @@ class RefreshMeter:
             return []
         return [self._cut(seq, image, blocks, None, over=True)]
 
-    def _largest(self, due: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
+    def _largest(self, due: np.ndarray, hand: np.ndarray) -> tuple[tuple[int, int, int, int], int]:
         """Blocks (column, row, end column, end row) around the largest group of ``due``
-        blocks, and how many blocks the group has."""
-        _, _, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), connectivity=8)
+        blocks, of those with a held hand's blocks if any, and how many blocks it has."""
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(due.astype(np.uint8), connectivity=8)
         best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        if (due & hand).any():
+            touching = np.unique(labels[due & hand])
+            best = int(touching[np.argmax(stats[touching, cv2.CC_STAT_AREA])])
         x, y, w, h, size = (int(v) for v in stats[best, :5])
         return (x, y, x + w, y + h), size
 

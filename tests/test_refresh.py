@@ -225,6 +225,47 @@ def test_a_refresh_beside_the_hair_goes_once_the_head_moves_on(photo: np.ndarray
     assert all(p.clears for p in later), later
 
 
+@pytest.mark.parametrize("palms", [True, False], ids=["palms-looked-for", "palms-not"])
+def test_a_hand_held_up_beside_a_moving_head_is_refreshed(photo: np.ndarray, palms: bool) -> None:
+    """A hand (tests/fixtures/hands.jpg's left one) held up by the cheek, where the warp
+    carries the picture with the head, while the head moves all the time: nothing new is cut
+    there for a moving head (an area fixed in the frame goes stale as it moves on), but a hand
+    held in place stays where it is. Found by the palm detector, it is cut within a second,
+    fingers and all, and kept while the head moves on; not looked for, it never is."""
+    from facewire.sender.palms import HeldPalms
+    from facewire.sender.refresh import STILL, RefreshMeter
+
+    hands = cv2.imread(str(FIXTURE.parent / "hands.jpg"))
+    hand = cv2.resize(hands[:, 50:345], None, fx=0.22, fy=0.22, interpolation=cv2.INTER_AREA)
+    keep = ~(hand.min(axis=2) > 225)  # its white background left out
+    x, y = 186, 36  # all of it where the warp carries the picture with the head
+    held = photo.copy()
+    held[y : y + hand.shape[0], x : x + hand.shape[1]][keep] = hand[keep]
+    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[160 + 36 * np.cos(angles), 93 + 40 * np.sin(angles), np.zeros(36)]
+    meter = RefreshMeter(
+        photo, outline, np.zeros(photo.shape[:2]), 30.0, palms=HeldPalms() if palms else None
+    )
+    step = 2 * STILL * 72  # twice what a head held still may move, a measurement
+    sent = []
+    for i in range(1, 61):
+        sway = step * ((i // 4) % 2)  # to and fro: never still for a measurement
+        sent += [(i, p) for p in meter.measure(i, held, outline + [sway, 0, 0], None, None)]
+    if not palms:
+        assert [p for _, p in sent if not p.clears] == []
+        return
+    cuts = [(i, p) for i, p in sent if not p.clears]
+    assert cuts and cuts[0][0] <= 30, sent
+    first = cuts[0][1]
+    rows, cols = np.nonzero(keep)
+    inside = (
+        (first.x <= x + cols) & (x + cols < first.x + first.width)
+        & (first.y <= y + rows) & (y + rows < first.y + first.height)
+    )  # fmt: skip
+    assert inside.mean() > 0.9, (first, inside.mean())
+    assert not any(p.clears for i, p in sent if i > cuts[0][0]), sent  # kept
+
+
 def test_a_refresh_the_head_moved_onto_is_given_back_when_it_no_longer_matches(
     photo: np.ndarray,
 ) -> None:

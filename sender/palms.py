@@ -1,0 +1,86 @@
+"""Hands held up near the face, found by MediaPipe's palm detector (the lite model).
+
+The refreshes (sender/refresh.py) cut nothing new where the warp carries the picture with a
+moving head: there an area fixed in the frame goes stale as the head moves on. A hand held
+up beside a moving head is the exception that a person sees at once: it stays where it is
+while the head moves. The palm detector says where hands are (about 4 ms on a 640x480 frame,
+run with the refreshes' comparison, every fourth frame); a palm found twice running in much
+the same place is held, and the refreshes may cut it whatever the head does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from facewire.models.network import Network, rgb_input
+from facewire.sender.detector import decode, model_path, square_input, ssd_anchors, weighted_nms
+
+INPUT_SIZE = 192
+#: A palm's score (0-1) from which it counts (MediaPipe's own threshold).
+MIN_SCORE = 0.5
+#: Boxes overlapping more than this (intersection over union) are one palm.
+NMS_IOU = 0.3
+#: A palm found again overlapping its last box at least this much has been held in place.
+HELD_IOU = 0.3
+#: The whole hand around a palm, as MediaPipe's hand tracking crops it: a square this many
+#: times the palm box's larger side ...
+HAND_SCALE = 2.6
+#: ... its centre moved this share of that side from the palm's towards the fingers (from
+#: the wrist to the middle finger's root, the detector's first and third hand points).
+HAND_SHIFT = 0.5
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    inter = max(0.0, w) * max(0.0, h)
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+class PalmDetector:
+    """Hands in a frame, found by their palms: boxes (x0, y0, x1, y1) in its pixels, each the
+    square around the whole hand (the palm's box covers the palm and the fingers' roots)."""
+
+    def __init__(self, path: str | Path | None = None) -> None:
+        self.net = Network(
+            Path(path) if path is not None else model_path("palm_detection_lite.tflite")
+        )
+        self.anchors = ssd_anchors(INPUT_SIZE)
+
+    def detect(self, frame_bgr: np.ndarray) -> list[np.ndarray]:
+        """The hands in ``frame_bgr`` ((h, w, 3) uint8 BGR, any size), best first."""
+        small, side, offset = square_input(frame_bgr, INPUT_SIZE)
+        out = self.net.run(rgb_input(small, 1 / 255.0))
+        # Two outputs, told apart by their last axis: 18 regressors a box, one score logit.
+        regressors, logits = sorted(out.values(), key=lambda a: a.shape[-1], reverse=True)
+        boxes, points, scores = decode(regressors[0], logits.reshape(-1), self.anchors, INPUT_SIZE)
+        keep = scores >= MIN_SCORE
+        if not keep.any():
+            return []
+        hands = []
+        for box, hand, _ in weighted_nms(boxes[keep], points[keep], scores[keep], NMS_IOU):
+            palm = box * side - 0.5 - np.tile(offset, 2)
+            towards = (hand[2] - hand[0]) * side
+            towards /= max(float(np.hypot(*towards)), 1e-9)
+            size = float(max(palm[2] - palm[0], palm[3] - palm[1]))
+            centre = (palm[:2] + palm[2:]) / 2 + HAND_SHIFT * size * towards
+            half = HAND_SCALE * size / 2
+            hands.append(np.r_[centre - half, centre + half])
+        return hands
+
+
+class HeldPalms:
+    """The hands held in place: found at this look and the one before, overlapping."""
+
+    def __init__(self, detector: PalmDetector | None = None) -> None:
+        self.detector = detector if detector is not None else PalmDetector()
+        self._last: list[np.ndarray] = []
+
+    def update(self, frame_bgr: np.ndarray) -> list[np.ndarray]:
+        found = self.detector.detect(frame_bgr)
+        held = [b for b in found if any(_iou(b, c) >= HELD_IOU for c in self._last)]
+        self._last = found
+        return held
