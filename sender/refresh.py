@@ -7,9 +7,10 @@ surroundings as it does for the face's edge (no drawing, on the frame reduced to
 pixels wide, every fourth frame: 0.13 s is soon enough, and the sender has 16 ms a frame in
 all) and compares them with its frame in blocks, leaving out the drawn face. Where the warp
 carries the surroundings with the head (hair, ears: above the mouth, within the head's reach)
-something new is cut only while the head holds still (a hand raised beside it), and given
-back as soon as the head moves on: an area fixed in the frame there goes stale when the head
-moves (a lock of hair shows where the head was). Each pixel's
+something new is cut only while the head holds still, and given back as soon as the head
+moves on: an area fixed in the frame there goes stale when the head moves (a lock of hair
+shows where the head was). A hand held up there (sender/palms.py finds it) stays where it is
+while the head moves: it is cut whatever the head does, first, and kept. Each pixel's
 difference is the least over shifts of up to :data:`SLACK` pixels, so hair or a shoulder a
 pixel or two off (which the warp leaves, and the edge's corrections mend) does not count; a
 block whose mean difference stays above :data:`DIFF_LEVEL` for :data:`PERSIST_S` is the model's
