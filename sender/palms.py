@@ -10,6 +10,7 @@ the same place is held, and the refreshes may cut it whatever the head does.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +41,22 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return inter / union if union > 0 else 0.0
 
 
+@dataclass(frozen=True)
+class Hand:
+    """A hand found: its palm's box (the palm and the fingers' roots) and the square around
+    the whole hand, (x0, y0, x1, y1) in the frame's pixels. The detector takes some faces for
+    palms (carphone's, Claire's): a palm whose centre is on the face is left to the caller."""
+
+    palm: np.ndarray
+    box: np.ndarray
+
+    @property
+    def centre(self) -> np.ndarray:
+        return (self.palm[:2] + self.palm[2:]) / 2
+
+
 class PalmDetector:
-    """Hands in a frame, found by their palms: boxes (x0, y0, x1, y1) in its pixels, each the
-    square around the whole hand (the palm's box covers the palm and the fingers' roots)."""
+    """Hands in a frame, found by their palms."""
 
     def __init__(self, path: str | Path | None = None) -> None:
         self.net = Network(
@@ -50,7 +64,7 @@ class PalmDetector:
         )
         self.anchors = ssd_anchors(INPUT_SIZE)
 
-    def detect(self, frame_bgr: np.ndarray) -> list[np.ndarray]:
+    def detect(self, frame_bgr: np.ndarray) -> list[Hand]:
         """The hands in ``frame_bgr`` ((h, w, 3) uint8 BGR, any size), best first."""
         small, side, offset = square_input(frame_bgr, INPUT_SIZE)
         out = self.net.run(rgb_input(small, 1 / 255.0))
@@ -68,7 +82,7 @@ class PalmDetector:
             size = float(max(palm[2] - palm[0], palm[3] - palm[1]))
             centre = (palm[:2] + palm[2:]) / 2 + HAND_SHIFT * size * towards
             half = HAND_SCALE * size / 2
-            hands.append(np.r_[centre - half, centre + half])
+            hands.append(Hand(palm, np.r_[centre - half, centre + half]))
         return hands
 
 
@@ -77,10 +91,10 @@ class HeldPalms:
 
     def __init__(self, detector: PalmDetector | None = None) -> None:
         self.detector = detector if detector is not None else PalmDetector()
-        self._last: list[np.ndarray] = []
+        self._last: list[Hand] = []
 
-    def update(self, frame_bgr: np.ndarray) -> list[np.ndarray]:
+    def update(self, frame_bgr: np.ndarray) -> list[Hand]:
         found = self.detector.detect(frame_bgr)
-        held = [b for b in found if any(_iou(b, c) >= HELD_IOU for c in self._last)]
+        held = [h for h in found if any(_iou(h.palm, c.palm) >= HELD_IOU for c in self._last)]
         self._last = found
         return held

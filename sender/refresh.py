@@ -45,7 +45,7 @@ from facewire.models.surround import SurroundWarp, carried_by_head
 from facewire.protocol.images import decode_image
 from facewire.protocol.packets import Refresh
 from facewire.sender.occlusion import FaceOcclusion
-from facewire.sender.palms import HeldPalms
+from facewire.sender.palms import Hand, HeldPalms
 from facewire.sender.rate_cap import RateCap
 
 logger = logging.getLogger(__name__)
@@ -128,7 +128,7 @@ class RefreshMeter:
         self.occlusion = occlusion
         #: Finds hands held up near the face (None: not looked for), and those it last found.
         self.palms = palms
-        self._hands: list[np.ndarray] = []
+        self._hands: list[Hand] = []
         self.reduce = k = max(1, self.width // WORK_WIDTH)
         shift = 0.5 / k - 0.5
         self._to_work = np.array([[1 / k, 0.0, shift], [0.0, 1 / k, shift], [0.0, 0.0, 1.0]])
@@ -298,12 +298,18 @@ class RefreshMeter:
 
     def _hand_blocks(self, poly: np.ndarray) -> np.ndarray:
         """(rows, cols) bool: blocks of the hands held in place (sender/palms.py) within
-        HAND_REACH face widths of the face (``poly``, its outline in work pixels)."""
+        HAND_REACH face widths of the face (``poly``, its outline in work pixels), but not
+        those whose palm is on the face (the detector takes some faces for palms; a hand in
+        front of the face is sender/occlusion.py's)."""
         hand = np.zeros((self.rows, self.cols), bool)
         xy = poly[:, :2]
         centre, width = xy.mean(0), float(np.ptp(xy[:, 0]))
-        for box in self._hands:
-            corners = self._work(box.reshape(2, 2))
+        outline = xy.astype(np.float32).reshape(-1, 1, 2)
+        for found in self._hands:
+            palm = self._work(found.centre[None])[0]
+            if cv2.pointPolygonTest(outline, (float(palm[0]), float(palm[1])), False) >= 0:
+                continue
+            corners = self._work(found.box.reshape(2, 2))
             if np.hypot(*(corners.mean(0) - centre)) > HAND_REACH * width:
                 continue
             c0, r0 = np.floor(corners[0] / BLOCK).astype(int).clip(0)

@@ -27,7 +27,7 @@ def hands() -> np.ndarray:
 def test_two_hands_held_up_are_found_whole(detector: PalmDetector, hands: np.ndarray) -> None:
     """hands.jpg: a left hand, fingers up (x 55-340), and a right one, fingers down (x
     380-700). Each is found, and its box is the whole hand's, fingers too, not the palm's."""
-    found = sorted(detector.detect(hands), key=lambda box: box[0])
+    found = sorted((h.box for h in detector.detect(hands)), key=lambda box: box[0])
     assert len(found) == 2, found
     left, right = found
     for box, (x0, x1) in ((left, (55, 340)), (right, (380, 700))):

@@ -272,6 +272,33 @@ def test_a_hand_held_up_beside_a_moving_head_is_refreshed(photo: np.ndarray, pal
     assert not any(p.clears for i, p in sent if i > cuts[0][0]), sent  # kept
 
 
+def test_a_palm_on_the_face_is_no_hand_held_beside_it(photo: np.ndarray) -> None:
+    """The palm detector takes some faces for palms (carphone's, Claire's, Grandma's chin),
+    and a hand over the face is sender/occlusion.py's: a palm whose centre is on the face
+    does not let the refreshes cut beside a moving head. Here a real hand on the cheek, its
+    fingers reaching past the face's edge: nothing is cut there while the head sways."""
+    from facewire.sender.palms import HeldPalms
+    from facewire.sender.refresh import STILL, RefreshMeter
+
+    hands = cv2.imread(str(FIXTURE.parent / "hands.jpg"))
+    hand = cv2.resize(hands[:, 50:345], None, fx=0.3, fy=0.3, interpolation=cv2.INTER_AREA)
+    hand = cv2.rotate(hand, cv2.ROTATE_90_CLOCKWISE)  # the fingers towards the scene
+    keep = ~(hand.min(axis=2) > 225)
+    held = photo.copy()
+    held[40 : 40 + hand.shape[0], 145 : 145 + hand.shape[1]][keep] = hand[keep]
+    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    outline = np.c_[160 + 36 * np.cos(angles), 93 + 40 * np.sin(angles), np.zeros(36)]
+    palms = HeldPalms()
+    meter = RefreshMeter(photo, outline, np.zeros(photo.shape[:2]), 30.0, palms=palms)
+    step = 2 * STILL * 72
+    sent = []
+    for i in range(1, 31):
+        sway = step * ((i // 4) % 2)
+        sent += meter.measure(i, held, outline + [sway, 0, 0], None, None)
+    assert palms.update(held), "the hand was not found: the test shows nothing"
+    assert [p for p in sent if not p.clears] == [], sent
+
+
 def test_a_refresh_the_head_moved_onto_is_given_back_when_it_no_longer_matches(
     photo: np.ndarray,
 ) -> None:
