@@ -3,9 +3,9 @@
 The refreshes (sender/refresh.py) cut nothing new where the warp carries the picture with a
 moving head: there an area fixed in the frame goes stale as the head moves on. A hand held
 up beside a moving head is the exception that a person sees at once: it stays where it is
-while the head moves. The palm detector says where hands are (about 4 ms on a 640x480 frame,
-run with the refreshes' comparison, every fourth frame); a palm found twice running in much
-the same place is held, and the refreshes may cut it whatever the head does.
+while the head moves. The palm detector says where hands are (about 4 ms, every fourth
+frame, half-way between the refreshes' comparisons, around the face); a palm found twice
+running in much the same place is held, and the refreshes may cut it whatever the head does.
 """
 
 from __future__ import annotations
@@ -64,9 +64,18 @@ class PalmDetector:
         )
         self.anchors = ssd_anchors(INPUT_SIZE)
 
-    def detect(self, frame_bgr: np.ndarray) -> list[Hand]:
-        """The hands in ``frame_bgr`` ((h, w, 3) uint8 BGR, any size), best first."""
+    def detect(
+        self, frame_bgr: np.ndarray, around: tuple[float, float, float] | None = None
+    ) -> list[Hand]:
+        """The hands in ``frame_bgr`` ((h, w, 3) uint8 BGR, any size), best first; only in the
+        square ``around`` (centre x, centre y, side, pixels) when it is smaller than the frame:
+        a hand there is larger in the network's 192 pixels."""
+        h, w = frame_bgr.shape[:2]
+        corner = np.zeros(2)
+        if around is not None and around[2] < max(h, w):
+            frame_bgr, corner = _square(frame_bgr, *around)
         small, side, offset = square_input(frame_bgr, INPUT_SIZE)
+        offset = offset - corner
         out = self.net.run(rgb_input(small, 1 / 255.0))
         # Two outputs, told apart by their last axis: 18 regressors a box, one score logit.
         regressors, logits = sorted(out.values(), key=lambda a: a.shape[-1], reverse=True)
@@ -86,6 +95,21 @@ class PalmDetector:
         return hands
 
 
+def _square(
+    frame_bgr: np.ndarray, cx: float, cy: float, side: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The square of ``side`` around (cx, cy) from ``frame_bgr``, black beyond its edges, and
+    the square's top-left corner in the frame."""
+    h, w = frame_bgr.shape[:2]
+    n = max(1, round(side))
+    x0, y0 = round(cx - n / 2), round(cy - n / 2)
+    out = np.zeros((n, n, 3), np.uint8)
+    fx0, fy0, fx1, fy1 = max(0, x0), max(0, y0), min(w, x0 + n), min(h, y0 + n)
+    if fx1 > fx0 and fy1 > fy0:
+        out[fy0 - y0 : fy1 - y0, fx0 - x0 : fx1 - x0] = frame_bgr[fy0:fy1, fx0:fx1]
+    return out, np.array([x0, y0], dtype=np.float64)
+
+
 class HeldPalms:
     """The hands held in place: found at this look and the one before, overlapping."""
 
@@ -93,8 +117,10 @@ class HeldPalms:
         self.detector = detector if detector is not None else PalmDetector()
         self._last: list[Hand] = []
 
-    def update(self, frame_bgr: np.ndarray) -> list[Hand]:
-        found = self.detector.detect(frame_bgr)
+    def update(
+        self, frame_bgr: np.ndarray, around: tuple[float, float, float] | None = None
+    ) -> list[Hand]:
+        found = self.detector.detect(frame_bgr, around)
         held = [h for h in found if any(_iou(h.palm, c.palm) >= HELD_IOU for c in self._last)]
         self._last = found
         return held

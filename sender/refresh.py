@@ -80,6 +80,10 @@ HEAD_SHARE = 0.5
 #: A hand held in place (sender/palms.py) within this many face widths of the face's centre
 #: is one held up by it: its blocks may be cut whatever the head does.
 HAND_REACH = 1.5
+#: The palm detector looks at a square this many face widths wide around the face, where
+#: smaller than the frame: a hand there is larger in its 192-pixel input (beside a 72-px face
+#: in a 1280x720 frame, a 76-px hand was found only so).
+HAND_LOOK = 4.0
 #: What stands in front of the face is cut again when its area has moved so that it shares
 #: less than this (intersection over union) with the one shown.
 SAME_AREA = 0.6
@@ -196,7 +200,7 @@ class RefreshMeter:
         self._frames += 1
         if self.palms is not None and (self._frames - 1) % EVERY == EVERY // 2:
             # Half-way between two comparisons: no frame pays for both (4 ms and 6).
-            self._hands = self.palms.update(image)
+            self._hands = self.palms.update(image, self._hand_look())
         if (self._frames - 1) % EVERY:
             return []
         poly = self._work(outline)
@@ -295,6 +299,15 @@ class RefreshMeter:
         scaled = (poly[:, :2] / BLOCK - 0.5).round().astype(np.int32)
         cv2.fillPoly(mask, [scaled], 1)
         return mask.astype(bool)
+
+    def _hand_look(self) -> tuple[float, float, float] | None:
+        """Where to look for hands (centre x, centre y, side, image pixels): HAND_LOOK face
+        widths around the face at the last comparison (None before the first)."""
+        if not self._faces:
+            return None
+        x, y, width = self._faces[-1]
+        cx, cy = (self._from_work @ [x, y, 1.0])[:2]
+        return float(cx), float(cy), HAND_LOOK * width * self.reduce
 
     def _hand_blocks(self, poly: np.ndarray) -> np.ndarray:
         """(rows, cols) bool: blocks of the hands held in place (sender/palms.py) within

@@ -60,3 +60,27 @@ def test_a_hand_is_held_once_found_twice_in_much_the_same_place(
     assert len(detector.detect(there)) == 2
     assert held.update(there) == []
     assert len(held.update(there)) == 2
+
+
+def test_a_small_hand_by_a_small_face_is_found_looking_around_the_face(
+    detector: PalmDetector, hands: np.ndarray
+) -> None:
+    """A 72-px face with a hand beside it in a 1280x720 frame: the hand is under 45 of the
+    network's 192 pixels on the whole frame and is missed; looked for in a square four face
+    widths wide around the face (sender/refresh.py's HAND_LOOK) it is found, and its box is
+    where it is in the frame."""
+    photo = cv2.resize(
+        cv2.imread(str(FIXTURES / "astronaut_face.jpg")), (320, 320), interpolation=cv2.INTER_AREA
+    )
+    hand = cv2.resize(hands[:, 50:345], None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+    keep = ~(hand.min(axis=2) > 225)
+    photo[36 : 36 + hand.shape[0], 186 : 186 + hand.shape[1]][keep] = hand[keep]
+    frame = cv2.resize(cv2.imread(str(FIXTURES / "astronaut_face.jpg")), (1280, 1280))[280:1000]
+    frame[200:520, 480:800] = photo  # the face's centre at (640, 293)
+    assert detector.detect(frame) == []
+    found = detector.detect(frame, (640.0, 293.0, 4 * 72.0))
+    assert len(found) == 1, found
+    rows, cols = np.nonzero(keep)
+    x0, y0, x1, y1 = found[0].box
+    inside = (x0 <= 666 + cols) & (666 + cols < x1) & (y0 <= 236 + rows) & (236 + rows < y1)
+    assert inside.mean() > 0.9, (found[0].box, inside.mean())
