@@ -89,7 +89,8 @@ def decode(
     return boxes, kps, scores
 
 
-def _iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Intersection over union of ``box`` (4,) with each of ``boxes`` (n, 4), (x0, y0, x1, y1)."""
     x0 = np.maximum(box[0], boxes[:, 0])
     y0 = np.maximum(box[1], boxes[:, 1])
     x1 = np.minimum(box[2], boxes[:, 2])
@@ -115,7 +116,7 @@ def weighted_nms(
     for i in range(len(scores)):
         if not alive[i]:
             continue
-        members = alive & (_iou(boxes[i], boxes) > iou_threshold)
+        members = alive & (box_iou(boxes[i], boxes) > iou_threshold)
         members[i] = True
         alive &= ~members
         w = scores[members] / scores[members].sum()
@@ -218,7 +219,7 @@ def merge_overlapping(detections: list[Detection], iou_threshold: float) -> list
     several overlapping tiles), best score first."""
     kept: list[Detection] = []
     for det in sorted(detections, key=lambda d: -d.score):
-        if not kept or (_iou(det.box, np.array([k.box for k in kept])) <= iou_threshold).all():
+        if not kept or (box_iou(det.box, np.array([k.box for k in kept])) <= iou_threshold).all():
             kept.append(det)
     return kept
 

@@ -16,7 +16,14 @@ from pathlib import Path
 import numpy as np
 
 from facewire.models.network import Network, rgb_input
-from facewire.sender.detector import decode, model_path, square_input, ssd_anchors, weighted_nms
+from facewire.sender.detector import (
+    box_iou,
+    decode,
+    model_path,
+    square_input,
+    ssd_anchors,
+    weighted_nms,
+)
 
 INPUT_SIZE = 192
 #: A palm's score (0-1) from which it counts (MediaPipe's own threshold).
@@ -31,14 +38,6 @@ HAND_SCALE = 2.6
 #: ... its centre moved this share of that side from the palm's towards the fingers (from
 #: the wrist to the middle finger's root, the detector's first and third hand points).
 HAND_SHIFT = 0.5
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    inter = max(0.0, w) * max(0.0, h)
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -121,6 +120,7 @@ class HeldPalms:
         self, frame_bgr: np.ndarray, around: tuple[float, float, float] | None = None
     ) -> list[Hand]:
         found = self.detector.detect(frame_bgr, around)
-        held = [h for h in found if any(_iou(h.palm, c.palm) >= HELD_IOU for c in self._last)]
+        last = np.array([c.palm for c in self._last]).reshape(-1, 4)
+        held = [h for h in found if (box_iou(h.palm, last) >= HELD_IOU).any()]
         self._last = found
         return held
