@@ -71,14 +71,14 @@ def hold_object(
     h, w = frames[0].shape[:2]
     face = float(np.ptp(p[:, 0]))
     if hand:
-        left = cv2.imread(str(HANDS))[:, 50:345]
+        photo = cv2.imread(str(HANDS))[:, 50:345]  # the left hand
         ow = max(8, int(0.8 * face))
-        oh = round(ow * left.shape[0] / left.shape[1])
+        oh = round(ow * photo.shape[0] / photo.shape[1])
     else:
-        left = cv2.imread(str(FIXTURE))[150:260, 0:70]
+        photo = cv2.imread(str(FIXTURE))[150:260, 0:70]  # the flag
         ow = max(8, int(0.45 * face))
         oh = int(1.5 * ow)
-    thing = cv2.resize(left, (ow, oh), interpolation=cv2.INTER_AREA)
+    thing = cv2.resize(photo, (ow, oh), interpolation=cv2.INTER_AREA)
     keep = ~(thing.min(axis=2) > WHITE) if hand else np.ones(thing.shape[:2], bool)
     x = min(int(p[:, 0].max() + 0.05 * face), w - ow)
     y = max(0, min(int(p[:, 1].max() - 0.8 * oh), h - oh))
